@@ -1,0 +1,44 @@
+from torchrl_mbmf.envs.factory import make_env
+from torchrl_mbmf.envs.gym_state import make_gym_state_env
+from torchrl_mbmf.envs.half_cheetah import HALF_CHEETAH_ID, make_half_cheetah_env
+from torchrl_mbmf.envs.keys import (
+    ACTUATOR_TORQUES_KEY,
+    FORWARD_VELOCITY_KEY,
+    HEAD_HEIGHT_KEY,
+    JOINT_ANGLES_KEY,
+    JOINT_VELOCITIES_KEY,
+    OBSERVATION_KEY,
+    STATE_KEY,
+)
+from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
+from torchrl_mbmf.envs.physics_info import PhysicsInfo
+from torchrl_mbmf.envs.transforms import (
+    REWARDS,
+    DefaultReward,
+    HeadPenReward,
+    ShinPenReward,
+    StateToObservation,
+    make_reward,
+)
+
+__all__ = [
+    "ACTUATOR_TORQUES_KEY",
+    "FORWARD_VELOCITY_KEY",
+    "HALF_CHEETAH_ID",
+    "HEAD_HEIGHT_KEY",
+    "JOINT_ANGLES_KEY",
+    "JOINT_VELOCITIES_KEY",
+    "OBSERVATION_KEY",
+    "REWARDS",
+    "STATE_KEY",
+    "DefaultReward",
+    "HeadPenReward",
+    "LearnedDynamicsEnv",
+    "PhysicsInfo",
+    "ShinPenReward",
+    "StateToObservation",
+    "make_env",
+    "make_gym_state_env",
+    "make_half_cheetah_env",
+    "make_reward",
+]

@@ -1,0 +1,119 @@
+"""Factory for gymnasium envs exposing a model state and a policy observation."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import gymnasium as gym
+import torch
+from torchrl._utils import set_auto_unwrap_transformed_env
+from torchrl.data import Unbounded
+from torchrl.envs import (
+    Compose,
+    DoubleToFloat,
+    GymWrapper,
+    RenameTransform,
+    RewardSum,
+    StepCounter,
+    Transform,
+    TransformedEnv,
+)
+from torchrl.envs.libs.gym import default_info_dict_reader
+
+from torchrl_mbmf.envs.keys import OBSERVATION_KEY, STATE_KEY
+from torchrl_mbmf.envs.physics_info import quiet_mujoco_warnings
+from torchrl_mbmf.envs.transforms.observation import StateToObservation
+
+
+def make_gym_state_env(
+    env_id: str,
+    *,
+    num_envs: int = 1,
+    seed: int | None = None,
+    device: str | torch.device = "cpu",
+    drop_state_dims: Sequence[int] = (),
+    info_specs: Mapping[str, Sequence[int]] | None = None,
+    wrap: Callable[[gym.Env], gym.Env] | None = None,
+    transforms: Sequence[Transform] = (),
+    state_key: str = STATE_KEY,
+    observation_key: str = OBSERVATION_KEY,
+    **gym_kwargs: Any,
+) -> TransformedEnv:
+    """Builds a TorchRL env on a gymnasium env with a vector observation and continuous actions.
+
+    The gymnasium observation becomes the model ``state`` (float32); the policy ``observation`` is
+    that state with ``drop_state_dims`` removed (:class:`StateToObservation`). Info entries named
+    in ``info_specs`` are read into the tensordict. ``transforms`` (for example a reward transform)
+    come next, then :class:`~torchrl.envs.StepCounter` and :class:`~torchrl.envs.RewardSum`
+    (``episode_reward``), so the tracked return is the one the transforms define.
+
+    ``num_envs > 1`` runs the copies in one gymnasium ``SyncVectorEnv`` (same-step auto-reset)
+    inside a single TorchRL wrapper: on a few cores this is much cheaper than one process or one
+    TorchRL env per copy. Keys and specs are the same, with a leading ``[num_envs]`` batch dim.
+
+    Args:
+        env_id: gymnasium id, for example ``"Pendulum-v1"``.
+
+    Keyword Args:
+        num_envs: number of copies stepped together. Defaults to ``1`` (an unbatched env).
+        seed: seed of the env (copy ``i`` gets ``seed + i``), or ``None``. Defaults to ``None``.
+        device: device of the returned tensors. Defaults to ``"cpu"``.
+        drop_state_dims: state dims hidden from the policy observation. Defaults to ``()``.
+        info_specs: info key -> per-env shape of float entries to read. Defaults to none.
+        wrap: function applied to each gymnasium env after ``gym.make``. Defaults to none.
+        transforms: transforms inserted before the step counter and return tracker.
+        state_key: key of the model state. Defaults to :data:`~torchrl_mbmf.envs.STATE_KEY`.
+        observation_key: key of the policy observation. Defaults to
+            :data:`~torchrl_mbmf.envs.OBSERVATION_KEY`.
+        **gym_kwargs: passed to ``gym.make``.
+
+    Returns:
+        A :class:`~torchrl.envs.TransformedEnv`.
+
+    Examples:
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_mbmf.envs import make_gym_state_env
+        >>> env = make_gym_state_env("Pendulum-v1", seed=0)
+        >>> check_env_specs(env)
+        >>> env.rollout(3)["next", "observation"].shape
+        torch.Size([3, 3])
+    """
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+
+    def make_one() -> gym.Env:
+        with quiet_mujoco_warnings():
+            env = gym.make(env_id, **gym_kwargs)
+        return wrap(env) if wrap is not None else env
+
+    if num_envs == 1:
+        gym_env: gym.Env = make_one()
+        batch: tuple[int, ...] = ()
+    else:
+        gym_env = gym.vector.SyncVectorEnv(
+            [make_one] * num_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP
+        )
+        batch = (num_envs,)
+    base = GymWrapper(gym_env, device=device)
+    if info_specs:
+        keys = list(info_specs)
+        specs = [Unbounded(shape=(*batch, *info_specs[k]), dtype=torch.float64) for k in keys]
+        base.set_info_dict_reader(default_info_dict_reader(keys, spec=specs))
+    state_dim = base.observation_spec["observation"].shape[-1]
+    chain: list[Transform] = [DoubleToFloat()]
+    if state_key != "observation":
+        chain.append(RenameTransform(in_keys=["observation"], out_keys=[state_key]))
+    chain.append(
+        StateToObservation(
+            state_dim, drop_dims=drop_state_dims, in_key=state_key, out_key=observation_key
+        )
+    )
+    chain.extend(transforms)
+    chain.extend([StepCounter(), RewardSum()])
+    with set_auto_unwrap_transformed_env(True):
+        # a vector env comes back as TransformedEnv(auto-reset handler): extend that chain
+        env = TransformedEnv(base, Compose(*chain))
+    if seed is not None:
+        env.set_seed(seed)
+    return env

@@ -1,0 +1,215 @@
+"""The learned world model as a TorchRL environment."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
+from torchrl.envs import EnvBase, TransformedEnv
+from torchrl.envs.model_based import ModelBasedEnvBase
+
+from torchrl_mbmf.envs.keys import OBSERVATION_KEY, STATE_KEY
+from torchrl_mbmf.envs.transforms.observation import StateToObservation
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+
+
+def _find_state_to_observation(
+    env: EnvBase, state_key: NestedKey, observation_key: NestedKey
+) -> StateToObservation | None:
+    while isinstance(env, TransformedEnv):
+        for t in env.transform:
+            if (
+                isinstance(t, StateToObservation)
+                and t.in_keys[0] == state_key
+                and t.out_keys[0] == observation_key
+            ):
+                return t
+        env = env.base_env
+    return None
+
+
+def _unbounded_like(spec: TensorSpec) -> Unbounded:
+    return Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
+
+
+class LearnedDynamicsEnv(ModelBasedEnvBase):
+    """A :class:`~torchrl_mbmf.modules.DeltaDynamicsModel` as a stateless TorchRL environment.
+
+    Planning rolls candidate action sequences out in this env from real states: ``reset`` takes
+    the state from the tensordict it is given (``state_key``), each ``step`` applies the world
+    model to ``(state, action)`` and writes the predicted next state, its policy observation and
+    the predicted reward. The env never auto-resets and never reports ``done`` (HalfCheetah has
+    no terminal states), and accepts any batch shape (``batch_locked=False``), so ``[*B, m]``
+    candidates of ``[*B]`` real states roll out in one call.
+
+    Specs are copied from the real env (unbatched): the state entry, the policy observation entry
+    (when the real env has one, kept in sync through the real env's
+    :class:`~torchrl_mbmf.envs.transforms.StateToObservation`, or ``observation_fn``), the
+    action spec and a ``[1]`` reward. Physics entries read from the real env's info are not part
+    of the model's state and are not copied. It subclasses
+    :class:`~torchrl.envs.model_based.ModelBasedEnvBase` directly (``WorldModelEnv`` in torchrl
+    0.14.1 cannot be built on bounded action specs).
+
+    For planners that need raw speed, :meth:`predict` steps tensors without building
+    tensordicts; it computes exactly what :meth:`step` writes.
+
+    Args:
+        world_model: the fitted dynamics model.
+        env: the real env whose specs are copied (batched or not).
+
+    Keyword Args:
+        batch_size: batch size of the specs. Defaults to ``torch.Size([])``.
+        state_key: key of the model state. Defaults to :data:`~torchrl_mbmf.envs.STATE_KEY`.
+        observation_key: key of the policy observation, or ``None`` if the policy reads the
+            state itself. Defaults to :data:`~torchrl_mbmf.envs.OBSERVATION_KEY` (``None`` is
+            used automatically when the real env has no such entry).
+        action_key: action key. Defaults to ``"action"``.
+        reward_key: reward key. Defaults to ``"reward"``.
+        observation_fn: maps a state tensor to the policy observation. Defaults to the real
+            env's ``StateToObservation`` transform.
+        device: device of the env. Defaults to the world model's device.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env
+        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+        >>> real = make_gym_state_env("Pendulum-v1")
+        >>> model_env = LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, hidden_sizes=(16,)), real)
+        >>> check_env_specs(model_env)
+        >>> start = real.reset().expand(15)  # 15 candidates from one real state
+        >>> rollout = model_env.rollout(10, tensordict=model_env.reset(start), auto_reset=False)
+        >>> rollout["next", "reward"].shape
+        torch.Size([15, 10, 1])
+    """
+
+    def __init__(
+        self,
+        world_model: DeltaDynamicsModel,
+        env: EnvBase,
+        *,
+        batch_size: torch.Size | tuple[int, ...] | None = None,
+        state_key: NestedKey = STATE_KEY,
+        observation_key: NestedKey | None = OBSERVATION_KEY,
+        action_key: NestedKey = "action",
+        reward_key: NestedKey = "reward",
+        observation_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        if not isinstance(world_model, DeltaDynamicsModel):
+            raise TypeError(
+                f"world_model must be a DeltaDynamicsModel, got {type(world_model).__name__}"
+            )
+        if device is None:
+            device = next(world_model.parameters()).device
+        module = world_model.as_tensordict_module(
+            state_key=state_key, action_key=action_key, reward_key=reward_key
+        )
+        super().__init__(module, device=device, batch_size=batch_size)
+        self.dynamics = world_model
+        self.state_key = state_key
+
+        obs_spec = env.full_observation_spec_unbatched
+        if state_key not in obs_spec.keys(True):
+            raise KeyError(
+                f"the real env has no {state_key!r} entry in its observation spec; "
+                f"its entries are {sorted(map(str, obs_spec.keys(True, True)))}"
+            )
+        state_spec = obs_spec[state_key]
+        if state_spec.shape[-1:] != (world_model.state_dim,):
+            raise ValueError(
+                f"the real env's {state_key!r} has shape {tuple(state_spec.shape)}, the world "
+                f"model expects state_dim={world_model.state_dim}"
+            )
+        action_spec = env.full_action_spec_unbatched[action_key]
+        if action_spec.shape[-1:] != (world_model.action_dim,):
+            raise ValueError(
+                f"the real env's {action_key!r} has shape {tuple(action_spec.shape)}, the world "
+                f"model expects action_dim={world_model.action_dim}"
+            )
+        if observation_key is not None and observation_key not in obs_spec.keys(True):
+            observation_key = None
+        self.observation_key = observation_key
+        self._observation_fn: Callable[[torch.Tensor], torch.Tensor] | None = None
+        # A learned model may predict outside the real env's observation bounds: unbounded specs.
+        observation_entries = {state_key: _unbounded_like(state_spec)}
+        if observation_key is not None:
+            if observation_fn is None:
+                transform = _find_state_to_observation(env, state_key, observation_key)
+                if transform is None:
+                    raise ValueError(
+                        f"the real env has an {observation_key!r} entry but no "
+                        f"StateToObservation transform from {state_key!r}; pass observation_fn"
+                    )
+                observation_fn = transform.observation
+            self._observation_fn = observation_fn
+            observation_entries[observation_key] = _unbounded_like(obs_spec[observation_key])
+        bs = self.batch_size
+        self.observation_spec = Composite(observation_entries).expand(bs).to(self.device)
+        self.full_action_spec = Composite(
+            {action_key: action_spec.clone().expand(*bs, *action_spec.shape)}, shape=bs
+        ).to(self.device)
+        self.full_reward_spec = Composite(
+            {reward_key: Unbounded(shape=(*bs, 1), device=self.device)}, shape=bs
+        )
+        self.full_done_spec = Composite(
+            done=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
+            terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
+            shape=bs,
+        )
+
+    def observation(self, state: torch.Tensor) -> torch.Tensor | None:
+        """The policy observation of ``state`` (``None`` when there is no observation key)."""
+        if self._observation_fn is None:
+            return None
+        return self._observation_fn(state)
+
+    def predict(
+        self, state: torch.Tensor, action: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Tensor-level step: next state ``[..., state_dim]`` and reward ``[..., 1]``."""
+        return self.dynamics(state, action)
+
+    def _fill(self, state: torch.Tensor, batch_size: torch.Size) -> TensorDict:
+        out = TensorDict({self.state_key: state}, batch_size=batch_size, device=self.device)
+        if self.observation_key is not None:
+            out.set(self.observation_key, self.observation(state))
+        falses = torch.zeros((*batch_size, 1), dtype=torch.bool, device=self.device)
+        out.set("done", falses)
+        out.set("terminated", falses.clone())
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        next_state, reward = self.dynamics(
+            tensordict.get(self.state_key), tensordict.get(self.action_key)
+        )
+        out = self._fill(next_state, tensordict.batch_size)
+        out.set(self.reward_key, reward)
+        return out
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: object) -> TensorDictBase:
+        if tensordict is not None and self.state_key in tensordict.keys(True):
+            state = tensordict.get(self.state_key)
+            batch_size = tensordict.batch_size
+        else:
+            # No start state given (e.g. check_env_specs): start from the spec's zero state.
+            batch_size = tensordict.batch_size if tensordict is not None else self.batch_size
+            spec = self.observation_spec[self.state_key]
+            state = torch.zeros(
+                (*batch_size, *spec.shape[len(self.batch_size) :]),
+                dtype=spec.dtype,
+                device=self.device,
+            )
+        if state.shape[-1] != self.dynamics.state_dim:
+            raise ValueError(
+                f"reset state {self.state_key!r} has last dim {state.shape[-1]}, expected "
+                f"{self.dynamics.state_dim}"
+            )
+        return self._fill(state, batch_size)
+
+    def _set_seed(self, seed: int | None) -> None:
+        # The learned env is deterministic: nothing to seed.
+        return None

@@ -1,0 +1,17 @@
+from torchrl_mbmf.envs.transforms.observation import StateToObservation
+from torchrl_mbmf.envs.transforms.rewards import (
+    REWARDS,
+    DefaultReward,
+    HeadPenReward,
+    ShinPenReward,
+    make_reward,
+)
+
+__all__ = [
+    "REWARDS",
+    "DefaultReward",
+    "HeadPenReward",
+    "ShinPenReward",
+    "StateToObservation",
+    "make_reward",
+]

@@ -1,0 +1,3 @@
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+
+__all__ = ["DeltaDynamicsModel"]
