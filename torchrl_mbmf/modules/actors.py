@@ -1,0 +1,202 @@
+"""Actor and critic builders with the thesis' network sizes (table 5), sized from the env."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import torch
+from tensordict.nn import (
+    AddStateIndependentNormalScale,
+    NormalParamExtractor,
+    TensorDictModule,
+)
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.envs import EnvBase
+from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
+
+from torchrl_mbmf.envs.keys import OBSERVATION_KEY
+
+Distribution = Literal["tanh_normal", "normal"]
+
+
+def _dims(env: EnvBase, observation_key: NestedKey, action_key: NestedKey):
+    obs_spec = env.full_observation_spec_unbatched
+    if observation_key not in obs_spec.keys(True):
+        raise KeyError(
+            f"the env has no {observation_key!r} observation; it has "
+            f"{sorted(map(str, obs_spec.keys(True, True)))}"
+        )
+    action_spec = env.full_action_spec_unbatched[action_key]
+    return obs_spec[observation_key].shape[-1], action_spec
+
+
+class _TanhLoc(nn.Module):
+    """Squashes the policy mean with tanh (thesis table 5: "actor output layer activation")."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.net(x))
+
+
+def make_ppo_actor_critic(
+    env: EnvBase,
+    *,
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.ReLU,
+    distribution: Distribution = "tanh_normal",
+    init_log_std: float = 0.0,
+    observation_key: NestedKey = OBSERVATION_KEY,
+    action_key: NestedKey = "action",
+) -> tuple[ProbabilisticActor, ValueOperator]:
+    """Builds the PPO actor (Gaussian, state-independent log-std) and state-value critic.
+
+    Both are MLPs of ``hidden_sizes`` with ``activation`` (thesis table 5: 2x64, ReLU) reading the
+    policy ``observation``. The actor writes ``loc`` and ``scale``, samples ``action`` and its
+    ``action_log_prob`` (the key ``ClipPPOLoss`` reads in torchrl 0.14); the scale is one
+    trainable parameter per action dim (``log std`` = its log). The critic writes
+    ``state_value``.
+
+    Args:
+        env: the real env; observation and action sizes are read from its specs.
+
+    Keyword Args:
+        hidden_sizes: hidden widths of both networks. Defaults to ``(64, 64)``.
+        activation: hidden activation. Defaults to :class:`torch.nn.ReLU`.
+        distribution: ``"tanh_normal"`` (a TanhNormal: actions inside the bounds, exact
+            log-prob of what runs) or ``"normal"`` (the thesis' Gaussian with a tanh-squashed
+            mean; the env clips actions). Defaults to ``"tanh_normal"``.
+        init_log_std: initial log std of the policy. Defaults to ``0.0``.
+        observation_key: input key. Defaults to ``"observation"``.
+        action_key: action key. Defaults to ``"action"``.
+
+    Returns:
+        ``(actor, critic)``.
+
+    Examples:
+        >>> from torchrl_mbmf.envs import make_gym_state_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> env = make_gym_state_env("Pendulum-v1")
+        >>> actor, critic = make_ppo_actor_critic(env)
+        >>> td = critic(actor(env.reset()))
+        >>> [k in td.keys() for k in ("action", "action_log_prob", "loc", "scale", "state_value")]
+        [True, True, True, True, True]
+    """
+    obs_dim, action_spec = _dims(env, observation_key, action_key)
+    action_dim = action_spec.shape[-1]
+    net = MLP(
+        in_features=obs_dim,
+        out_features=action_dim,
+        num_cells=list(hidden_sizes),
+        activation_class=activation,
+    )
+    if distribution == "normal":
+        net = _TanhLoc(net)
+        dist_class, dist_kwargs = IndependentNormal, {}
+    elif distribution == "tanh_normal":
+        dist_class = TanhNormal
+        dist_kwargs = {
+            "low": action_spec.space.low,
+            "high": action_spec.space.high,
+            "tanh_loc": False,
+        }
+    else:
+        raise ValueError(
+            f"unknown distribution {distribution!r}; expected 'tanh_normal' or 'normal'"
+        )
+    policy_net = nn.Sequential(
+        net, AddStateIndependentNormalScale(action_dim, init_value=init_log_std)
+    )
+    actor = ProbabilisticActor(
+        TensorDictModule(policy_net, in_keys=[observation_key], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        out_keys=[action_key],
+        spec=action_spec,
+        distribution_class=dist_class,
+        distribution_kwargs=dist_kwargs,
+        return_log_prob=True,
+    )
+    critic = ValueOperator(
+        MLP(
+            in_features=obs_dim,
+            out_features=1,
+            num_cells=list(hidden_sizes),
+            activation_class=activation,
+        ),
+        in_keys=[observation_key],
+    )
+    return actor, critic
+
+
+def make_sac_actor_critic(
+    env: EnvBase,
+    *,
+    hidden_sizes: Sequence[int] = (256, 256),
+    activation: type[nn.Module] = nn.ReLU,
+    observation_key: NestedKey = OBSERVATION_KEY,
+    action_key: NestedKey = "action",
+) -> tuple[ProbabilisticActor, ValueOperator]:
+    """Builds the SAC actor (TanhNormal, state-dependent scale) and one Q-network.
+
+    ``torchrl.objectives.SACLoss`` copies the Q-network into its ensemble
+    (``num_qvalue_nets``), so one is enough.
+
+    Args:
+        env: the real env; observation and action sizes are read from its specs.
+
+    Keyword Args:
+        hidden_sizes: hidden widths of both networks. Defaults to ``(256, 256)``.
+        activation: hidden activation. Defaults to :class:`torch.nn.ReLU`.
+        observation_key: input key. Defaults to ``"observation"``.
+        action_key: action key. Defaults to ``"action"``.
+
+    Returns:
+        ``(actor, qvalue)``; the Q-network reads ``(observation, action)`` and writes
+        ``state_action_value``.
+
+    Examples:
+        >>> from torchrl_mbmf.envs import make_gym_state_env
+        >>> from torchrl_mbmf.modules import make_sac_actor_critic
+        >>> env = make_gym_state_env("Pendulum-v1")
+        >>> actor, qvalue = make_sac_actor_critic(env, hidden_sizes=(32, 32))
+        >>> qvalue(actor(env.reset()))["state_action_value"].shape
+        torch.Size([1])
+    """
+    obs_dim, action_spec = _dims(env, observation_key, action_key)
+    action_dim = action_spec.shape[-1]
+    net = nn.Sequential(
+        MLP(
+            in_features=obs_dim,
+            out_features=2 * action_dim,
+            num_cells=list(hidden_sizes),
+            activation_class=activation,
+        ),
+        NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
+    )
+    actor = ProbabilisticActor(
+        TensorDictModule(net, in_keys=[observation_key], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        out_keys=[action_key],
+        spec=action_spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={
+            "low": action_spec.space.low,
+            "high": action_spec.space.high,
+            "tanh_loc": False,
+        },
+        return_log_prob=True,
+    )
+    qvalue = ValueOperator(
+        MLP(
+            in_features=obs_dim + action_dim,
+            out_features=1,
+            num_cells=list(hidden_sizes),
+            activation_class=activation,
+        ),
+        in_keys=[observation_key, action_key],
+    )
+    return actor, qvalue
