@@ -1,0 +1,130 @@
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from torchrl_mbmf.envs import (
+    OBSERVATION_KEY,
+    STATE_KEY,
+    LearnedDynamicsEnv,
+    make_gym_state_env,
+    make_half_cheetah_env,
+)
+from torchrl_mbmf.modules import DeltaDynamicsModel
+
+
+@pytest.fixture(scope="module")
+def cheetah():
+    return make_half_cheetah_env(seed=0)
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    m = DeltaDynamicsModel(18, 6, hidden_sizes=(32, 32))
+    s = torch.randn(100, 18)
+    m.fit_normalizer(
+        s, torch.rand(100, 6) * 2 - 1, s + 0.1 * torch.randn(100, 18), torch.randn(100)
+    )
+    return m
+
+
+@pytest.mark.parametrize("batch_size", [(), (4,), (2, 3)])
+def test_check_env_specs_any_batch(cheetah, model, batch_size):
+    env = LearnedDynamicsEnv(model, cheetah, batch_size=batch_size)
+    check_env_specs(env)
+    assert env.observation_spec[STATE_KEY].shape == (*batch_size, 18)
+    assert env.observation_spec[OBSERVATION_KEY].shape == (*batch_size, 17)
+    assert env.action_spec.shape == (*batch_size, 6)
+    # only the model's state and observation, no physics info entries
+    assert set(env.observation_spec.keys()) == {STATE_KEY, OBSERVATION_KEY}
+    assert not env.batch_locked
+
+
+def test_specs_from_batched_real_env(model):
+    real = make_half_cheetah_env(num_envs=3, seed=0)
+    env = LearnedDynamicsEnv(model, real)
+    assert env.batch_size == ()
+    check_env_specs(env)
+    torch.testing.assert_close(env.action_spec.space.low, -torch.ones(6))
+
+
+def test_starts_from_given_state_and_never_done(cheetah, model):
+    env = LearnedDynamicsEnv(model, cheetah)
+    real_td = cheetah.reset()
+    start = real_td.expand(2, 15).clone()
+    td0 = env.reset(start)
+    torch.testing.assert_close(td0[STATE_KEY], start[STATE_KEY])
+    actions = torch.rand(2, 15, 10, 6) * 2 - 1
+    roll = env.rollout(
+        10,
+        policy=_Replay(actions),
+        tensordict=td0,
+        auto_reset=False,
+        break_when_any_done=False,
+    )
+    assert roll.batch_size == (2, 15, 10)
+    assert not roll["next", "done"].any()
+    # the rollout is the model applied step by step, observation kept in sync
+    s = start[STATE_KEY]
+    for t in range(10):
+        s, r = model(s, actions[..., t, :])
+        torch.testing.assert_close(roll["next", STATE_KEY][..., t, :], s)
+        torch.testing.assert_close(roll["next", "reward"][..., t, :], r)
+    torch.testing.assert_close(roll["next", OBSERVATION_KEY], roll["next", STATE_KEY][..., 1:])
+
+
+class _Replay:
+    """Policy that writes precomputed actions, one time step per call."""
+
+    def __init__(self, actions):
+        self.actions = actions
+        self.t = 0
+
+    def __call__(self, td):
+        td.set("action", self.actions[..., self.t, :])
+        self.t += 1
+        return td
+
+
+def test_predict_matches_step(cheetah, model):
+    env = LearnedDynamicsEnv(model, cheetah)
+    td = env.reset(cheetah.reset().expand(5).clone())
+    td["action"] = torch.rand(5, 6) * 2 - 1
+    out = env.step(td)
+    nxt, r = env.predict(td[STATE_KEY], td["action"])
+    torch.testing.assert_close(out["next", STATE_KEY], nxt)
+    torch.testing.assert_close(out["next", "reward"], r)
+    torch.testing.assert_close(env.observation(nxt), nxt[..., 1:])
+
+
+def test_reset_without_state_starts_at_zero(cheetah, model):
+    env = LearnedDynamicsEnv(model, cheetah)
+    td = env.reset()
+    assert (td[STATE_KEY] == 0).all()
+    td = env.reset(TensorDict(batch_size=[4]))
+    assert td[STATE_KEY].shape == (4, 18)
+
+
+def test_pendulum_without_dropped_dims():
+    real = make_gym_state_env("Pendulum-v1", seed=0)
+    env = LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real)
+    check_env_specs(env)
+    td = env.rollout(3, tensordict=env.reset(real.reset()), auto_reset=False)
+    torch.testing.assert_close(td["next", OBSERVATION_KEY], td["next", STATE_KEY])
+
+
+def test_errors_name_the_mismatch(cheetah, model):
+    with pytest.raises(ValueError, match="state_dim=17"):
+        LearnedDynamicsEnv(DeltaDynamicsModel(17, 6, hidden_sizes=(4,)), cheetah)
+    with pytest.raises(ValueError, match="action_dim=5"):
+        LearnedDynamicsEnv(DeltaDynamicsModel(18, 5, hidden_sizes=(4,)), cheetah)
+    with pytest.raises(KeyError, match="'nope'"):
+        LearnedDynamicsEnv(model, cheetah, state_key="nope")
+    with pytest.raises(TypeError, match="DeltaDynamicsModel"):
+        LearnedDynamicsEnv(torch.nn.Linear(3, 3), cheetah)
+    env = LearnedDynamicsEnv(model, cheetah)
+    with pytest.raises(ValueError, match="last dim 5"):
+        env.reset(TensorDict(state=torch.zeros(2, 5), batch_size=[2]))
