@@ -1,4 +1,4 @@
-from torchrl_mbmf.envs.factory import make_env
+from torchrl_mbmf.envs.factory import env_metadata, make_env
 from torchrl_mbmf.envs.gym_state import make_gym_state_env
 from torchrl_mbmf.envs.half_cheetah import HALF_CHEETAH_ID, make_half_cheetah_env
 from torchrl_mbmf.envs.keys import (
@@ -37,6 +37,7 @@ __all__ = [
     "PhysicsInfo",
     "ShinPenReward",
     "StateToObservation",
+    "env_metadata",
     "make_env",
     "make_gym_state_env",
     "make_half_cheetah_env",

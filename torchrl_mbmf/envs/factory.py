@@ -6,11 +6,11 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
-from torchrl.envs import TransformedEnv
+from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_mbmf.envs.gym_state import make_gym_state_env
 from torchrl_mbmf.envs.half_cheetah import HALF_CHEETAH_ID, make_half_cheetah_env
-from torchrl_mbmf.envs.transforms.rewards import REWARDS
+from torchrl_mbmf.envs.transforms.rewards import REWARDS, _ForwardPenaltyReward
 
 #: Reward name meaning "the env's own reward" for envs other than HalfCheetah.
 NATIVE_REWARD = "default"
@@ -69,3 +69,38 @@ def make_env(
             "reward) with no kwargs"
         )
     return make_gym_state_env(env_id, num_envs=num_envs, seed=seed, device=device, **gym_kwargs)
+
+
+def env_metadata(env: EnvBase) -> dict[str, Any]:
+    """The gymnasium id and the reward (name and parameters) of an env built by this package.
+
+    Recorded with datasets and checkpoints so that data collected under one env or reward is
+    never reused for another.
+
+    Args:
+        env: a real env from :func:`make_env`, :func:`make_half_cheetah_env` or
+            :func:`make_gym_state_env`.
+
+    Returns:
+        ``{"env_id": str, "reward": {"name": str, ...parameters}}``; envs without a thesis
+        reward transform report ``{"name": "default"}`` (their own reward).
+
+    Examples:
+        >>> from torchrl_mbmf.envs import env_metadata, make_env
+        >>> env_metadata(make_env("HalfCheetah-v5", reward="head_pen"))["reward"]["threshold"]
+        -0.2
+    """
+    reward: dict[str, Any] = {"name": NATIVE_REWARD}
+    node: EnvBase = env
+    while isinstance(node, TransformedEnv):
+        for t in node.transform:
+            if isinstance(t, _ForwardPenaltyReward):
+                reward = dict(t.parameters_dict())
+        node = node.base_env
+    gym_env = getattr(node, "_env", None)
+    if gym_env is not None and hasattr(gym_env, "envs"):
+        gym_env = gym_env.envs[0]
+    spec = getattr(gym_env, "spec", None)
+    if spec is None:
+        raise ValueError(f"cannot find the gymnasium id of {type(node).__name__}")
+    return {"env_id": spec.id, "reward": reward}

@@ -1,0 +1,157 @@
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_mbmf.data import (
+    CorruptDatasetError,
+    DatasetMismatchError,
+    TransitionDataset,
+    collect_random_transitions,
+)
+from torchrl_mbmf.data.transitions import TRAJ_KEY
+from torchrl_mbmf.envs import env_metadata, make_env, make_gym_state_env
+
+META = {"env_id": "Mock-v0", "reward": {"name": "default"}}
+
+
+def _batch(n_envs, steps, done_at=(), start=0.0):
+    """Transitions whose state encodes (env, global step) and with done at given (env, t)."""
+    t = torch.arange(steps, dtype=torch.float32) + start
+    state = torch.stack([t + 1000 * e for e in range(n_envs)])[..., None].expand(-1, -1, 3)
+    done = torch.zeros(n_envs, steps, 1, dtype=torch.bool)
+    for e, k in done_at:
+        done[e, k] = True
+    return TensorDict(
+        state=state.clone(),
+        action=torch.zeros(n_envs, steps, 1),
+        next=TensorDict(
+            state=state + 1,
+            reward=torch.ones(n_envs, steps, 1),
+            done=done,
+            batch_size=[n_envs, steps],
+        ),
+        batch_size=[n_envs, steps],
+    )
+
+
+def test_trajectory_ids_across_batches_and_envs():
+    data = TransitionDataset(META)
+    data.extend(_batch(2, 4, done_at=[(0, 1), (1, 3)]))
+    data.extend(_batch(2, 3, done_at=[(0, 0)], start=4.0))
+    trajs = data.trajectories()
+    states = data.tensors()["state"][:, 0]
+    episodes = sorted(states[idx].tolist() for idx in trajs)
+    assert episodes == sorted(
+        [
+            [0.0, 1.0],  # env 0 until its done at t=1
+            [2.0, 3.0, 4.0],  # continues into the second batch, done at t=4
+            [5.0, 6.0],
+            [1000.0, 1001.0, 1002.0, 1003.0],  # env 1, done on the batch's last step
+            [1004.0, 1005.0, 1006.0],  # a fresh id in the next batch
+        ]
+    )
+    assert len(data) == 14
+    assert data.tensors()[TRAJ_KEY].unique().numel() == 5
+
+
+def test_random_collection_batched_keeps_episodes_consecutive():
+    env = make_env("Pendulum-v1", num_envs=3)
+    data = collect_random_transitions(env, 700, seed=0, chunk=90)
+    assert len(data) == 702  # rounded up to a multiple of the 3 copies
+    td = data.tensors()
+    lengths = []
+    for idx in data.trajectories():
+        torch.testing.assert_close(td["next", "state"][idx[:-1]], td["state"][idx[1:]])
+        lengths.append(idx.numel())
+    assert sorted(lengths) == [34, 34, 34, 200, 200, 200]  # 200-step episodes, 234 each
+    action = td["action"]
+    assert (action.abs() <= 2).all() and action.std() > 0.5  # uniform on Pendulum's [-2, 2]
+
+
+def test_seeded_collection_is_reproducible():
+    a = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 50, seed=1).tensors()
+    b = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 50, seed=1).tensors()
+    torch.testing.assert_close(a["action"], b["action"])
+    torch.testing.assert_close(a["next", "state"], b["next", "state"])
+
+
+def test_save_load_round_trip_and_append(tmp_path):
+    env = make_env("HalfCheetah-v5", reward="shin_pen")
+    data = collect_random_transitions(env, 120, seed=3)
+    path = data.save(tmp_path / "ds")
+    loaded = TransitionDataset.load(path, expect=env_metadata(env))
+    assert len(loaded) == 120
+    for key in data.keys:
+        torch.testing.assert_close(loaded.tensors()[key], data.tensors()[key])
+    assert loaded.metadata["seed"] == 3
+    assert loaded.metadata["reward"]["name"] == "shin_pen"
+    assert loaded.metadata["package_version"]
+    # appending continues the open episode
+    collect_random_transitions(env, 30, dataset=loaded)
+    assert len(loaded) == 150
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        loaded.save(path)
+    loaded.save(path, overwrite=True)
+    assert len(TransitionDataset.load(path)) == 150
+
+
+def test_load_refuses_other_env_or_reward(tmp_path):
+    data = collect_random_transitions(make_env("HalfCheetah-v5", reward="head_pen"), 20, seed=0)
+    data.save(tmp_path / "ds")
+    other = env_metadata(make_env("HalfCheetah-v5", reward="shin_pen"))
+    with pytest.raises(DatasetMismatchError, match=r"head_pen.*shin_pen"):
+        TransitionDataset.load(tmp_path / "ds", expect=other)
+    retuned = env_metadata(
+        make_env("HalfCheetah-v5", reward="head_pen", reward_kwargs={"threshold": -0.3})
+    )
+    with pytest.raises(DatasetMismatchError, match="reward"):
+        TransitionDataset.load(tmp_path / "ds", expect=retuned)
+    with pytest.raises(DatasetMismatchError, match="env_id='HalfCheetah-v5'"):
+        TransitionDataset.load(tmp_path / "ds", expect={"env_id": "Pendulum-v1"})
+
+
+def test_corrupt_or_truncated_files_raise(tmp_path):
+    data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 64, seed=0)
+    path = data.save(tmp_path / "ds")
+    memmap = path / "buffer" / "state.memmap"
+    raw = bytearray(memmap.read_bytes())
+    raw[5] ^= 0xFF
+    memmap.write_bytes(bytes(raw))
+    with pytest.raises(CorruptDatasetError, match="checksum"):
+        TransitionDataset.load(path)
+    memmap.write_bytes(bytes(raw[: len(raw) // 2]))
+    with pytest.raises(CorruptDatasetError):
+        TransitionDataset.load(path)
+    (path / "metadata.json").write_text("{not json")
+    with pytest.raises(CorruptDatasetError, match="JSON"):
+        TransitionDataset.load(path)
+    meta_path = data.save(tmp_path / "ds2") / "metadata.json"
+    meta = json.loads(meta_path.read_text())
+    meta["num_transitions"] = 80
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(CorruptDatasetError):
+        TransitionDataset.load(tmp_path / "ds2")
+    with pytest.raises(FileNotFoundError):
+        TransitionDataset.load(tmp_path / "missing")
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="env_id"):
+        TransitionDataset({"reward": {}})
+    data = TransitionDataset(META, capacity=5)
+    with pytest.raises(ValueError, match="capacity 5 exceeded"):
+        data.extend(_batch(2, 3))
+    with pytest.raises(ValueError, match=r"\[T\] or \[N, T\]"):
+        data.extend(_batch(1, 2).unsqueeze(0))
+    bad = _batch(1, 2)
+    bad["state"][0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        data.extend(bad)
+    with pytest.raises(ValueError, match="empty"):
+        data.tensors()
+    with pytest.raises(ValueError, match="num_steps"):
+        collect_random_transitions(make_gym_state_env("Pendulum-v1"), 0)

@@ -1,0 +1,13 @@
+from torchrl_mbmf.data.transitions import (
+    CorruptDatasetError,
+    DatasetMismatchError,
+    TransitionDataset,
+    collect_random_transitions,
+)
+
+__all__ = [
+    "CorruptDatasetError",
+    "DatasetMismatchError",
+    "TransitionDataset",
+    "collect_random_transitions",
+]

@@ -1,0 +1,419 @@
+"""The real-transition dataset the world model is fitted on, saved with its provenance."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers import RandomSampler
+from torchrl.envs import EnvBase
+from tqdm.auto import tqdm
+
+import torchrl_mbmf
+from torchrl_mbmf.envs.factory import env_metadata
+from torchrl_mbmf.envs.keys import STATE_KEY
+
+_FORMAT = "torchrl_mbmf.transitions/1"
+_META_FILE = "metadata.json"
+_BUFFER_DIR = "buffer"
+TRAJ_KEY = "traj_id"
+
+
+class DatasetMismatchError(ValueError):
+    """A saved dataset was collected under another env, reward or key layout."""
+
+
+class CorruptDatasetError(RuntimeError):
+    """A saved dataset is truncated or its content does not match its checksum."""
+
+
+def _done_of(batch: TensorDictBase) -> torch.Tensor:
+    nxt = batch.get("next")
+    done = nxt.get("done").clone() if "done" in nxt else None
+    for key in ("terminated", "truncated"):
+        if key in nxt:
+            flag = nxt.get(key)
+            done = flag.clone() if done is None else done | flag
+    if done is None:
+        raise KeyError("transitions need ('next', 'done') (or terminated/truncated)")
+    return done.reshape(batch.batch_size)
+
+
+class TransitionDataset:
+    """All real transitions ``(s, a, r, s')`` of a run, in a replay buffer stored on disk.
+
+    The world model is fitted on every real transition collected so far (thesis section 5.1:
+    random-policy data first, then every step the agent takes). Transitions are kept in a
+    :class:`~torchrl.data.TensorDictReplayBuffer` over a
+    :class:`~torchrl.data.LazyMemmapStorage`: memory-mapped files grow with the data instead
+    of pre-allocating RAM for the full capacity, and torchrl's ``dumps``/``loads`` save and
+    restore them. Only the keys the world model needs are stored (``state``, ``action``,
+    ``("next", "state")``, ``("next", "reward")``, ``("next", "done")``) plus a trajectory id,
+    so consecutive steps of each episode can be recovered for multi-step evaluation.
+
+    ``save`` writes the stored transitions (a memory-mapped TensorDict) and a
+    ``metadata.json`` (env id, reward name and parameters, step
+    count, seed, package version, and a SHA-256 of the stored tensors) into a temporary folder
+    renamed into place, so a crash during a save never leaves a half-written dataset under the
+    target name. ``load`` checks the metadata against what the caller expects and the checksum
+    against the data, and raises instead of returning partial data.
+
+    Args:
+        metadata: provenance, at least ``env_id`` and ``reward`` (see
+            :func:`~torchrl_mbmf.envs.env_metadata`).
+
+    Keyword Args:
+        capacity: maximal number of transitions. Defaults to ``2_000_000``.
+        scratch_dir: folder of the memory-mapped files. Defaults to a temporary folder.
+        state_key: state key. Defaults to ``"state"``.
+        action_key: action key. Defaults to ``"action"``.
+        reward_key: reward key (under ``"next"``). Defaults to ``"reward"``.
+
+    Examples:
+        >>> from torchrl_mbmf.data import TransitionDataset
+        >>> from torchrl_mbmf.envs import env_metadata, make_gym_state_env
+        >>> env = make_gym_state_env("Pendulum-v1", seed=0)
+        >>> data = TransitionDataset(env_metadata(env))
+        >>> data.extend(env.rollout(50))
+        >>> len(data), data.tensors()["state"].shape
+        (50, torch.Size([50, 3]))
+    """
+
+    def __init__(
+        self,
+        metadata: Mapping[str, Any],
+        *,
+        capacity: int = 2_000_000,
+        scratch_dir: str | os.PathLike | None = None,
+        state_key: NestedKey = STATE_KEY,
+        action_key: NestedKey = "action",
+        reward_key: NestedKey = "reward",
+    ) -> None:
+        for key in ("env_id", "reward"):
+            if key not in metadata:
+                raise ValueError(f"metadata needs an {key!r} entry, got {sorted(metadata)}")
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self.metadata = dict(metadata)
+        self.capacity = int(capacity)
+        self.state_key = state_key
+        self.action_key = action_key
+        self.reward_key = reward_key
+        self._scratch = scratch_dir
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyMemmapStorage(self.capacity, scratch_dir=scratch_dir),
+            sampler=RandomSampler(),
+        )
+        self._next_traj = 0
+        self._open_traj: torch.Tensor | None = None  # id of each env's running episode
+
+    def __len__(self) -> int:
+        return len(self.buffer)
+
+    @property
+    def keys(self) -> list[NestedKey]:
+        """The stored keys."""
+        return [
+            self.state_key,
+            self.action_key,
+            ("next", self.state_key),
+            ("next", self.reward_key),
+            ("next", "done"),
+            TRAJ_KEY,
+        ]
+
+    def extend(self, batch: TensorDictBase) -> None:
+        """Appends real transitions from ``env.rollout`` or a collector batch.
+
+        Args:
+            batch: ``[T]`` (one env) or ``[N, T]`` (``N`` batched envs) transitions. Episodes
+                continue across calls: the last step of each env in one batch and the first of
+                the next belong to the same episode unless it was done.
+
+        Raises:
+            ValueError: on a batch of another shape, missing keys, or when full.
+        """
+        if batch.batch_dims == 1:
+            batch = batch.unsqueeze(0)
+        if batch.batch_dims != 2:
+            raise ValueError(f"extend expects a [T] or [N, T] batch, got {tuple(batch.batch_size)}")
+        n_envs, steps = batch.batch_size
+        if len(self) + n_envs * steps > self.capacity:
+            raise ValueError(
+                f"dataset capacity {self.capacity} exceeded: holds {len(self)}, "
+                f"adding {n_envs * steps}; build it with a larger capacity"
+            )
+        missing = [k for k in self.keys[:-2] if k not in batch.keys(True)]
+        if missing:
+            raise ValueError(f"transitions lack keys {missing}; present: {batch.keys(True)}")
+        done = _done_of(batch)
+        if self._open_traj is None or self._open_traj.numel() != n_envs:
+            self._open_traj = torch.arange(self._next_traj, self._next_traj + n_envs)
+            self._next_traj += n_envs
+        # A new episode starts after every done step; each done opens one new id (the last
+        # step's done opens the id the env continues with in the next batch).
+        starts = torch.zeros_like(done, dtype=torch.long)
+        starts[:, 1:] = done[:, :-1].long()
+        local = starts.cumsum(1)  # 0 for the episode left open by the previous batch
+        opened = done.long().sum(1)
+        base = self._next_traj + torch.cumsum(opened, 0) - opened
+        ids = torch.where(local == 0, self._open_traj[:, None], base[:, None] + local - 1)
+        self._open_traj = torch.where(opened > 0, base + opened - 1, self._open_traj)
+        self._next_traj += int(opened.sum())
+        flat = TensorDict(
+            {
+                self.state_key: batch.get(self.state_key),
+                self.action_key: batch.get(self.action_key),
+                "next": {
+                    self.state_key: batch.get(("next", self.state_key)),
+                    self.reward_key: batch.get(("next", self.reward_key)),
+                    "done": done.unsqueeze(-1),
+                },
+                TRAJ_KEY: ids,
+            },
+            batch_size=[n_envs, steps],
+        ).reshape(-1)
+        for name in (self.state_key, self.action_key):
+            if not torch.isfinite(flat.get(name)).all():
+                raise ValueError(f"transitions contain NaN or Inf in {name!r}")
+        self.buffer.extend(flat.to(torch.device("cpu")))
+
+    def tensors(self) -> TensorDictBase:
+        """All stored transitions as one ``[N]`` TensorDict (a view of the storage)."""
+        if len(self) == 0:
+            raise ValueError("the dataset is empty")
+        return self.buffer.storage[: len(self)]
+
+    def trajectories(self) -> list[torch.Tensor]:
+        """Row indices of each episode, in time order (for open-loop multi-step evaluation)."""
+        ids = self.tensors().get(TRAJ_KEY)
+        order = torch.sort(ids, stable=True).indices
+        counts = torch.unique_consecutive(ids[order], return_counts=True)[1]
+        return list(torch.split(order, counts.tolist()))
+
+    def _checksum(self) -> str:
+        digest = hashlib.sha256()
+        if len(self):
+            data = self.tensors()
+            for key in self.keys:
+                digest.update(data.get(key).contiguous().numpy().tobytes())
+        return digest.hexdigest()
+
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Writes the dataset to the folder ``path`` atomically.
+
+        Args:
+            path: target folder.
+
+        Keyword Args:
+            overwrite: replace an existing dataset at ``path``. Defaults to ``False``.
+
+        Returns:
+            The path.
+
+        Raises:
+            FileExistsError: if ``path`` exists and ``overwrite`` is ``False``.
+        """
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+        try:
+            if len(self):
+                self.tensors().memmap(tmp / _BUFFER_DIR)
+            meta = {
+                **self.metadata,
+                "format": _FORMAT,
+                "num_transitions": len(self),
+                "capacity": self.capacity,
+                "next_traj": self._next_traj,
+                "open_traj": None if self._open_traj is None else self._open_traj.tolist(),
+                "sha256": self._checksum(),
+                "keys": [list(k) if isinstance(k, tuple) else k for k in self.keys],
+                "package_version": torchrl_mbmf.__version__,
+            }
+            (tmp / _META_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True))
+            if path.exists():
+                old = path.with_name(path.name + ".old")
+                shutil.rmtree(old, ignore_errors=True)
+                os.replace(path, old)
+                os.replace(tmp, path)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return path
+
+    @classmethod
+    def load(
+        cls,
+        path: str | os.PathLike,
+        *,
+        expect: Mapping[str, Any] | None = None,
+        capacity: int | None = None,
+        scratch_dir: str | os.PathLike | None = None,
+    ) -> TransitionDataset:
+        """Loads a dataset written by :meth:`save`, checking provenance and integrity.
+
+        Args:
+            path: the folder.
+
+        Keyword Args:
+            expect: metadata entries that must match (typically ``env_metadata(env)``: env id
+                and reward parameters). Defaults to no check.
+            capacity: capacity of the loaded dataset. Defaults to the saved one or the number of
+                transitions, whichever is larger.
+            scratch_dir: folder of the memory-mapped files. Defaults to a temporary folder.
+
+        Returns:
+            The dataset.
+
+        Raises:
+            FileNotFoundError: if there is no dataset at ``path``.
+            DatasetMismatchError: if an ``expect`` entry differs (the message names it).
+            CorruptDatasetError: if files are missing, truncated or fail the checksum.
+        """
+        path = Path(path)
+        meta_file = path / _META_FILE
+        if not meta_file.exists():
+            raise FileNotFoundError(f"no dataset at {path} (missing {_META_FILE})")
+        try:
+            meta = json.loads(meta_file.read_text())
+        except json.JSONDecodeError as err:
+            raise CorruptDatasetError(f"{meta_file} is not valid JSON: {err}") from err
+        if meta.get("format") != _FORMAT:
+            raise CorruptDatasetError(
+                f"{path} has format {meta.get('format')!r}, expected {_FORMAT!r}"
+            )
+        for key, value in (expect or {}).items():
+            if meta.get(key) != value:
+                raise DatasetMismatchError(
+                    f"dataset at {path} was collected with {key}={meta.get(key)!r}, "
+                    f"expected {key}={value!r}; collect new data for this configuration"
+                )
+        n = int(meta["num_transitions"])
+        provenance = {
+            k: v
+            for k, v in meta.items()
+            if k
+            not in (
+                "format",
+                "num_transitions",
+                "capacity",
+                "next_traj",
+                "open_traj",
+                "sha256",
+                "keys",
+                "package_version",
+            )
+        }
+        keys = [tuple(k) if isinstance(k, list) else k for k in meta["keys"]]
+        data = cls(
+            provenance,
+            capacity=max(capacity or int(meta.get("capacity", 0)), n, 1),
+            scratch_dir=scratch_dir,
+            state_key=keys[0],
+            action_key=keys[1],
+            reward_key=keys[3][1],
+        )
+        data.metadata["package_version"] = meta.get("package_version")
+        if n:
+            try:
+                stored = TensorDict.load_memmap(path / _BUFFER_DIR)
+                if stored.batch_size != (n,):
+                    raise ValueError(f"batch size {tuple(stored.batch_size)} != ({n},)")
+                data.buffer.extend(stored)
+            except Exception as err:
+                raise CorruptDatasetError(f"cannot read the buffer of {path}: {err}") from err
+            if len(data) != n:
+                raise CorruptDatasetError(
+                    f"{path} holds {len(data)} transitions, its metadata says {n}"
+                )
+        if data._checksum() != meta["sha256"]:
+            raise CorruptDatasetError(f"{path}: stored transitions do not match their checksum")
+        data._next_traj = int(meta["next_traj"])
+        if meta["open_traj"] is not None:
+            data._open_traj = torch.tensor(meta["open_traj"], dtype=torch.long)
+        return data
+
+
+def collect_random_transitions(
+    env: EnvBase,
+    num_steps: int,
+    *,
+    dataset: TransitionDataset | None = None,
+    seed: int | None = None,
+    progress: bool = False,
+    chunk: int = 1000,
+) -> TransitionDataset:
+    """Runs a uniform-random policy in the real env and stores its transitions.
+
+    With ``N`` batched copies each copy takes ``ceil(num_steps / N)`` steps, so the number of
+    transitions is ``num_steps`` rounded up to a multiple of ``N``. Episodes that end are reset
+    and continue. These are real env steps: count them in every budget.
+
+    Args:
+        env: the real env (batched or not).
+        num_steps: number of real transitions to collect.
+
+    Keyword Args:
+        dataset: dataset to append to. Defaults to a new one with ``env_metadata(env)``.
+        seed: seeds the env and the action sampling. Defaults to ``None``.
+        progress: show a tqdm bar. Defaults to ``False``.
+        chunk: steps per env between two appends to the dataset. Defaults to ``1000``.
+
+    Returns:
+        The dataset.
+
+    Examples:
+        >>> from torchrl_mbmf.data import collect_random_transitions
+        >>> from torchrl_mbmf.envs import make_gym_state_env
+        >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 300, seed=0)
+        >>> len(data), data.metadata["seed"]
+        (300, 0)
+    """
+    if num_steps < 1:
+        raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+    if dataset is None:
+        dataset = TransitionDataset({**env_metadata(env), "seed": seed})
+    n_envs = max(1, env.batch_size.numel())
+    steps_per_env = -(-num_steps // n_envs)
+    generator = torch.Generator()
+    if seed is not None:
+        env.set_seed(seed)
+        generator.manual_seed(seed)
+    spec = env.full_action_spec_unbatched[env.action_key]
+    low, high = spec.space.low, spec.space.high
+    shape = (*env.batch_size, *spec.shape)
+    bar = tqdm(total=steps_per_env * n_envs, desc="random data", unit="step", disable=not progress)
+    td = env.reset()
+    done_steps = 0
+    with torch.no_grad():
+        while done_steps < steps_per_env:
+            steps = min(chunk, steps_per_env - done_steps)
+            frames = []
+            for _ in range(steps):
+                u = torch.rand(shape, generator=generator, dtype=low.dtype)
+                td.set(env.action_key, low + (high - low) * u)
+                td, td_next = env.step_and_maybe_reset(td)
+                frames.append(td)
+                td = td_next
+            batch = torch.stack(frames, dim=env.batch_dims)
+            dataset.extend(batch)
+            done_steps += steps
+            bar.update(steps * n_envs)
+    bar.close()
+    return dataset
