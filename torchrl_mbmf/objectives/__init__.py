@@ -1,0 +1,3 @@
+from torchrl_mbmf.objectives.dynamics_loss import DynamicsLoss
+
+__all__ = ["DynamicsLoss"]

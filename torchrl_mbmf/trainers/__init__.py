@@ -1,0 +1,3 @@
+from torchrl_mbmf.trainers.dynamics import FitHistory, fit_dynamics
+
+__all__ = ["FitHistory", "fit_dynamics"]
