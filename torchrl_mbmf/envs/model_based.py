@@ -173,6 +173,15 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         """Tensor-level step: next state ``[..., state_dim]`` and reward ``[..., 1]``."""
         return self.dynamics(state, action)
 
+    def fast_predictor(self) -> Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]:
+        """Inference-only :meth:`predict` with the model's scaling folded into its weights.
+
+        A snapshot of the current weights (see
+        :meth:`~torchrl_mbmf.modules.DeltaDynamicsModel.fused_step`); planners build one per
+        plan.
+        """
+        return self.dynamics.fused_step()
+
     def _fill(self, state: torch.Tensor, batch_size: torch.Size) -> TensorDict:
         out = TensorDict({self.state_key: state}, batch_size=batch_size, device=self.device)
         if self.observation_key is not None:

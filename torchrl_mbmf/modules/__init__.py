@@ -1,4 +1,11 @@
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.planners import PolicyGuidedMPCPlanner, RandomShootingMPCPlanner
 
-__all__ = ["DeltaDynamicsModel", "make_ppo_actor_critic", "make_sac_actor_critic"]
+__all__ = [
+    "DeltaDynamicsModel",
+    "PolicyGuidedMPCPlanner",
+    "RandomShootingMPCPlanner",
+    "make_ppo_actor_critic",
+    "make_sac_actor_critic",
+]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -189,6 +189,59 @@ class DeltaDynamicsModel(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Predicts the next state ``[..., state_dim]`` and reward ``[..., 1]`` in real units."""
         return self.unscale(state, self.predict_scaled(state, action))
+
+    @torch.no_grad()
+    def fused_step(self) -> Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]:
+        """A faster, inference-only :meth:`forward` with the scaling folded into the weights.
+
+        The input standardisation is folded into the first linear layer and the output
+        un-scaling into the last one, removing about ten element-wise operations per call,
+        which matters in a planner's small-batch loop. The returned function is a snapshot:
+        build a new one after the weights or scaling change (planners do so at every plan).
+
+        Returns:
+            ``step(state, action) -> (next_state, reward)``, equal to ``forward`` up to
+            float rounding.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+            >>> model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+            >>> s, a = torch.randn(5, 3), torch.randn(5, 1)
+            >>> torch.allclose(model.fused_step()(s, a)[0], model(s, a)[0], atol=1e-5)
+            True
+        """
+        layers = list(self.net)
+        first, last = layers[0], layers[-1]
+        if not (isinstance(first, nn.Linear) and isinstance(last, nn.Linear)):
+            return self.forward
+        in_loc = torch.cat([self.state_loc, self.action_loc])
+        in_scale = torch.cat([self.state_scale, self.action_scale])
+        w1 = first.weight / in_scale
+        b1 = first.bias - w1 @ in_loc
+        out_loc = torch.cat([self.delta_loc, self.reward_loc])
+        out_scale = torch.cat([self.delta_scale, self.reward_scale])
+        if len(layers) == 1:
+            w1 = w1 * out_scale[:, None]
+            b1 = b1 * out_scale + out_loc
+            middle: list[nn.Module] = []
+            wl, bl = None, None
+        else:
+            middle = layers[1:-1]
+            wl = last.weight * out_scale[:, None]
+            bl = last.bias * out_scale + out_loc
+        low, high, d = self.action_low, self.action_high, self.state_dim
+
+        def step(state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            x = torch.cat([state, action.clamp(low, high)], -1)
+            x = nn.functional.linear(x, w1, b1)
+            for layer in middle:
+                x = layer(x)
+            if wl is not None:
+                x = nn.functional.linear(x, wl, bl)
+            return state + x[..., :d], x[..., d:]
+
+        return step
 
     def as_tensordict_module(
         self,

@@ -1,0 +1,223 @@
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+
+from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env, make_half_cheetah_env
+from torchrl_mbmf.modules import (
+    DeltaDynamicsModel,
+    PolicyGuidedMPCPlanner,
+    RandomShootingMPCPlanner,
+    make_ppo_actor_critic,
+)
+
+C = torch.tensor([1.0, -2.0, 0.5, 3.0, -1.0, 2.0])
+
+
+def closed_form_env(real):
+    """Learned env with s' = s + [0, a, 0...] and r = C . a, exactly (identity scaling)."""
+    model = DeltaDynamicsModel(18, 6, hidden_sizes=())
+    w = torch.zeros(19, 24)
+    w[1:7, 18:24] = torch.eye(6)  # delta of state dims 1..6 = action
+    w[18, 18:24] = C  # reward = C . a
+    with torch.no_grad():
+        model.net[0].weight.copy_(w)
+        model.net[0].bias.zero_()
+    return LearnedDynamicsEnv(model, real)
+
+
+@pytest.fixture(scope="module")
+def real():
+    return make_half_cheetah_env(seed=0)
+
+
+@pytest.fixture(scope="module")
+def actor(real):
+    torch.manual_seed(0)
+    return make_ppo_actor_critic(real, init_log_std=-0.5)
+
+
+def brute_force(planner, state, seed, sample):
+    """Re-draw the same candidates and pick the best by the closed-form return."""
+    torch.manual_seed(seed)
+    s = state.unsqueeze(-2).expand(*state.shape[:-1], planner.num_candidates, 18)
+    returns, first = 0.0, None
+    for _ in range(planner.horizon):
+        a = sample(s[..., 1:])
+        first = a if first is None else first
+        returns = returns + (a.clamp(-1, 1) * C).sum(-1)
+        s = s.clone()
+        s[..., 1:7] += a.clamp(-1, 1)
+    best = returns.argmax(-1)
+    return first.gather(-2, best[..., None, None].expand(*best.shape, 1, 6)).squeeze(-2)
+
+
+@pytest.mark.parametrize("batch", [(), (4,)])
+def test_random_shooting_picks_best_candidate(real, batch):
+    env = closed_form_env(real)
+    planner = RandomShootingMPCPlanner(env, num_candidates=15, horizon=10)
+    td = real.reset().expand(*batch).clone() if batch else real.reset()
+    torch.manual_seed(3)
+    out = planner(td.clone())
+    expected = brute_force(planner, td["state"], 3, lambda o: torch.rand(*o.shape[:-1], 6) * 2 - 1)
+    torch.testing.assert_close(out["action"], expected)
+    assert out["action"].shape == (*batch, 6)
+    ret = out["planner", "best_return"]
+    assert (ret >= out["planner", "mean_return"]).all()
+
+
+@pytest.mark.parametrize("batch", [(), (3,)])
+def test_policy_guided_picks_best_candidate(real, actor, batch):
+    policy, _ = actor
+    env = closed_form_env(real)
+    planner = PolicyGuidedMPCPlanner(env, policy, num_candidates=15, horizon=5)
+    td = real.reset().expand(*batch).clone() if batch else real.reset()
+    torch.manual_seed(4)
+    out = planner(td.clone())
+
+    def sample(obs):
+        return policy.get_dist(TensorDict(observation=obs, batch_size=obs.shape[:-1])).sample()
+
+    torch.testing.assert_close(out["action"], brute_force(planner, td["state"], 4, sample))
+
+
+def test_actions_in_spec_and_inputs_untouched(real, actor):
+    policy, _ = actor
+    model_env = LearnedDynamicsEnv(DeltaDynamicsModel(18, 6, hidden_sizes=(32,)), real)
+    td = make_half_cheetah_env(num_envs=2, seed=1).rollout(3)[:, -1]
+    for planner in (
+        PolicyGuidedMPCPlanner(model_env, policy),
+        RandomShootingMPCPlanner(model_env, actor=policy),
+        RandomShootingMPCPlanner(model_env),
+    ):
+        before = td.clone()
+        out = planner(td.clone())
+        assert real.action_spec.is_in(out["action"][0])
+        assert real.action_spec.is_in(out["action"][1])
+        for key in before.keys(True, True):
+            if key not in planner.out_keys:
+                torch.testing.assert_close(out[key], before[key])
+
+
+def test_log_prob_is_actor_log_prob_at_real_state(real, actor):
+    policy, _ = actor
+    model_env = LearnedDynamicsEnv(DeltaDynamicsModel(18, 6, hidden_sizes=(32,)), real)
+    td = make_half_cheetah_env(num_envs=4, seed=2).reset()
+    for planner in (
+        PolicyGuidedMPCPlanner(model_env, policy),
+        RandomShootingMPCPlanner(model_env, actor=policy),
+    ):
+        out = planner(td.clone())
+        dist = policy.get_dist(td.clone())
+        torch.testing.assert_close(out["action_log_prob"], dist.log_prob(out["action"]))
+        params = policy.module[0](td.clone())
+        torch.testing.assert_close(out["loc"], params["loc"])
+        torch.testing.assert_close(out["scale"], params["scale"])
+        assert out["action_log_prob"].shape == (4,)
+
+
+def test_same_seed_same_actions_and_deterministic_mode_still_samples(real, actor):
+    policy, _ = actor
+    model_env = LearnedDynamicsEnv(DeltaDynamicsModel(18, 6, hidden_sizes=(32,)), real)
+    planner = PolicyGuidedMPCPlanner(model_env, policy, num_candidates=8, horizon=3)
+    td = real.reset()
+    torch.manual_seed(0)
+    a = planner(td.clone())["action"]
+    torch.manual_seed(0)
+    b = planner(td.clone())["action"]
+    torch.testing.assert_close(a, b)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        plan = planner.plan(td.clone())
+    # candidates differ: the policy is sampled even in deterministic mode
+    assert plan.first_actions.std(0).min() > 0
+
+
+@pytest.mark.parametrize("cls", ["policy", "random"])
+def test_fast_and_generic_paths_agree(real, actor, cls):
+    policy, _ = actor
+    torch.manual_seed(0)
+    model = DeltaDynamicsModel(18, 6, hidden_sizes=(32, 32))
+    s = torch.randn(200, 18)
+    model.fit_normalizer(s, torch.rand(200, 6) * 2 - 1, s + torch.randn(200, 18), torch.randn(200))
+    model_env = LearnedDynamicsEnv(model, real)
+    if cls == "policy":
+        planner = PolicyGuidedMPCPlanner(model_env, policy, num_candidates=15, horizon=6)
+    else:
+        planner = RandomShootingMPCPlanner(model_env, num_candidates=15, horizon=6)
+    td = make_half_cheetah_env(num_envs=3, seed=5).reset()
+    torch.manual_seed(7)
+    fast = planner.plan(td.clone())
+    planner.fast_path = False
+    torch.manual_seed(7)
+    generic = planner.plan(td.clone())
+    torch.testing.assert_close(fast.first_actions, generic.first_actions)
+    torch.testing.assert_close(fast.returns, generic.returns, rtol=1e-4, atol=1e-4)
+    assert torch.equal(fast.best, generic.best)
+
+
+def test_terminal_value_and_discount_change_the_choice(real):
+    env = closed_form_env(real)
+    # value favours a low state[1] (= cumulative action 0); the reward favours a high one
+    value = ValueOperator(_NegFirst(), in_keys=["observation"])
+    td = real.reset()
+    plain = RandomShootingMPCPlanner(env, num_candidates=15, horizon=2)
+    valued = RandomShootingMPCPlanner(env, num_candidates=15, horizon=2, value_module=value)
+    torch.manual_seed(1)
+    p1 = plain.plan(td.clone())
+    torch.manual_seed(1)
+    p2 = valued.plan(td.clone())
+    torch.testing.assert_close(p1.first_actions, p2.first_actions)
+    final0 = td["state"][1] + 0  # start value of state[1]
+    assert p1.action[0] > 0  # C[0] = 1 rewards a positive first action dim
+    assert p2.action[0] < 0  # the value (100 * -state[1]) dominates
+    assert not torch.equal(p1.best, p2.best)
+    assert final0.ndim == 0
+    discounted = RandomShootingMPCPlanner(env, num_candidates=15, horizon=2, discount=0.5)
+    torch.manual_seed(1)
+    p3 = discounted.plan(td.clone())
+    manual = p1.returns.new_zeros(15)
+    torch.manual_seed(1)
+    draws = [torch.rand(15, 6) * 2 - 1 for _ in range(2)]
+    manual = (draws[0] * C).sum(-1) + 0.5 * (draws[1] * C).sum(-1)
+    torch.testing.assert_close(p3.returns, manual)
+
+
+class _NegFirst(nn.Module):
+    def forward(self, obs):
+        return -100.0 * obs[..., :1]
+
+
+def test_errors(real, actor):
+    policy, _ = actor
+    env = LearnedDynamicsEnv(DeltaDynamicsModel(18, 6, hidden_sizes=(8,)), real)
+    with pytest.raises(ValueError, match="num_candidates must be an integer >= 1, got 0"):
+        RandomShootingMPCPlanner(env, num_candidates=0)
+    with pytest.raises(ValueError, match="horizon must be an integer >= 1, got 0"):
+        PolicyGuidedMPCPlanner(env, policy, horizon=0)
+    with pytest.raises(ValueError, match="discount"):
+        PolicyGuidedMPCPlanner(env, policy, discount=0.0)
+    wrong = ProbabilisticActor(
+        TensorDictModule(
+            nn.Sequential(nn.Linear(17, 4), AddStateIndependentNormalScale(4)),
+            in_keys=["observation"],
+            out_keys=["loc", "scale"],
+        ),
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+        return_log_prob=True,
+    )
+    with pytest.raises(ValueError, match="size 4, the env's action spec has size 6"):
+        PolicyGuidedMPCPlanner(env, wrong)
+    deterministic = TensorDictModule(nn.Linear(17, 6), in_keys=["observation"], out_keys=["action"])
+    with pytest.raises(TypeError, match="stochastic TorchRL actor"):
+        PolicyGuidedMPCPlanner(env, deterministic)
+    with pytest.raises(TypeError, match="needs a stochastic actor"):
+        PolicyGuidedMPCPlanner(env, None)
+    pendulum_actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
+    with pytest.raises(ValueError, match="cannot read the env's 'observation'"):
+        PolicyGuidedMPCPlanner(env, pendulum_actor)
