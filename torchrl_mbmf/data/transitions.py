@@ -257,6 +257,23 @@ class TransitionDataset:
             raise
         return path
 
+    def dumps(self, path: str | os.PathLike) -> None:
+        """Saves into ``path`` for ``torchrl.checkpoint`` (same files as :meth:`save`)."""
+        self.save(path, overwrite=True)
+
+    def loads(self, path: str | os.PathLike) -> None:
+        """Restores in place from :meth:`dumps` output, checking env, reward and checksum."""
+        other = type(self).load(
+            path,
+            expect={"env_id": self.metadata["env_id"], "reward": self.metadata["reward"]},
+            capacity=self.capacity,
+            scratch_dir=self._scratch,
+        )
+        self.buffer = other.buffer
+        self._next_traj = other._next_traj
+        self._open_traj = other._open_traj
+        self.metadata = other.metadata
+
     @classmethod
     def load(
         cls,
