@@ -1,0 +1,570 @@
+"""The training loop of every method: model-free, MBMF planning phase, warm-start fine-tuning."""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import subprocess
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDictBase
+from torchrl.checkpoint import (
+    Checkpoint,
+    CheckpointRotation,
+    DumpLoadCheckpointAdapter,
+    GlobalRNGState,
+)
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
+from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate
+from torchrl.objectives.value import GAE
+from torchrl.record.loggers import get_logger
+from tqdm.auto import tqdm
+
+from torchrl_mbmf.data.transitions import TransitionDataset
+from torchrl_mbmf.envs.factory import env_metadata, make_env
+from torchrl_mbmf.envs.keys import STATE_KEY
+from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
+from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.planners import PolicyGuidedMPCPlanner, RandomShootingMPCPlanner
+from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_train_config
+from torchrl_mbmf.trainers.dynamics import fit_dynamics
+
+logger = logging.getLogger(__name__)
+
+
+def _fingerprint(cfg: Any) -> dict[str, Any]:
+    """Config entries a checkpoint must agree on to be resumed."""
+    algo = "ppo" if cfg.method in PPO_METHODS else "sac"
+    return {
+        "method": cfg.method,
+        "env.id": cfg.env.id,
+        "env.num_envs": int(cfg.env.num_envs),
+        "reward": OmegaConf.to_container(cfg.reward, resolve=True),
+        "seed": int(cfg.seed),
+        f"{algo}.hidden_sizes": list(cfg[algo].hidden_sizes),
+        "world_model.hidden_sizes": list(cfg.world_model.hidden_sizes),
+    }
+
+
+def _git_commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+        )
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+class _DatasetAdapter(DumpLoadCheckpointAdapter):
+    """Checkpoints a TransitionDataset with its own atomic, checksummed format."""
+
+    adapter_id = "torchrl_mbmf.transitions"
+
+    def save(self, component: Any, path: Path, *, args: tuple, kwargs: dict) -> Any:
+        component.dumps(path / "transitions")
+
+    def load(self, component: Any, path: Path, **kwargs: Any) -> None:
+        component.loads(path / "transitions")
+
+
+def seed_everything(seed: int) -> None:
+    """Seeds Python, NumPy and torch.
+
+    Args:
+        seed: the seed.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.loop import seed_everything
+        >>> seed_everything(0)
+    """
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+class Trainer:
+    """Runs one training method end to end from a composed ``train`` config.
+
+    Methods (thesis sections 5.1, 5.4):
+
+    - ``ppo``: stock :class:`~torchrl.objectives.ClipPPOLoss` with GAE on real data.
+    - ``ppo_mpc``: fit the world model on random-policy data (those real steps count), then the
+      :class:`~torchrl_mbmf.modules.PolicyGuidedMPCPlanner` collects ``ppo.frames_per_batch``
+      real steps per PPO update; all real transitions join the dataset, the model is refit on
+      it every ``world_model.refit_every`` updates; after ``planning_updates`` updates the same
+      actor and critic continue as pure PPO on the real env (warm start).
+    - ``mpc``: as ``ppo_mpc`` with the :class:`~torchrl_mbmf.modules.RandomShootingMPCPlanner`
+      (PPO trains on its transitions, as in the thesis).
+    - ``sac`` / ``sac_mpc``: stock :class:`~torchrl.objectives.SACLoss` with a replay buffer;
+      ``sac_mpc`` acts through the policy-guided planner with the SAC actor, starts its replay
+      buffer with the random-data steps and refits the model every
+      ``sac.refit_every_steps`` real steps.
+
+    Every real env step counts toward ``total_steps``, the random-data steps included.
+    Checkpoints (``torchrl.checkpoint``, atomic, rotated) are written every
+    ``checkpoint.every_steps`` real steps at batch boundaries; a new ``Trainer`` on the same
+    ``run_dir`` resumes from the latest one. A resumed run restarts the episode that was in
+    progress from a fresh reset (the simulator's state is not part of the checkpoint).
+
+    Args:
+        cfg: the composed config (see ``configs/train.yaml``).
+        run_dir: the run folder (logs, config, checkpoints, summary).
+
+    Examples:
+        >>> import tempfile
+        >>> from hydra import compose, initialize_config_dir
+        >>> from pathlib import Path
+        >>> from torchrl_mbmf.trainers import Trainer
+        >>> configs = str(Path("configs").resolve())
+        >>> with initialize_config_dir(configs, version_base="1.3"):  # doctest: +SKIP
+        ...     cfg = compose("train", overrides=["method=ppo", "env=pendulum",
+        ...                                       "total_steps=400", "ppo.frames_per_batch=200"])
+        >>> with tempfile.TemporaryDirectory() as d:  # doctest: +SKIP
+        ...     summary = Trainer(cfg, Path(d)).train()
+    """
+
+    def __init__(self, cfg: Any, run_dir: Path) -> None:
+        validate_train_config(cfg)
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.method = cfg.method
+        self.ppo = cfg.method in PPO_METHODS
+        self.model_based = cfg.method in MODEL_BASED
+        seed_everything(int(cfg.seed))
+        torch.set_num_threads(max(1, torch.get_num_threads()))
+        self.env = self._make_env(int(cfg.seed))
+        self.eval_env = self._make_env(int(cfg.seed) + 1000, num_envs=1)
+        self.progress: dict[str, Any] = {
+            "real_steps": 0,
+            "random_steps": 0,
+            "updates": 0,
+            "phase": "random" if self.model_based else "model_free",
+            "episodes": 0,
+            "last_returns": [],
+            "next_eval": 0,
+            "next_checkpoint": int(cfg.checkpoint.every_steps),
+            "next_refit": 0,
+            "switch_step": None,
+            "fingerprint": _fingerprint(cfg),
+        }
+        self._build_agent()
+        self._build_model()
+        self.logger = get_logger(
+            cfg.logger.backend,
+            logger_name=str(self.run_dir),
+            experiment_name="logs",
+        )
+        self.checkpoint = self._make_checkpoint()
+        self.rotation = CheckpointRotation(
+            self.run_dir / "checkpoints", keep_last=int(cfg.checkpoint.keep_last)
+        )
+        self.resumed = self._maybe_resume()
+        (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        (self.run_dir / "git_commit.txt").write_text(_git_commit() + "\n")
+
+    # ------------------------------------------------------------ building
+    def _make_env(self, seed: int, num_envs: int | None = None) -> EnvBase:
+        cfg = self.cfg
+        return make_env(
+            cfg.env.id,
+            reward=cfg.reward.name,
+            reward_kwargs=dict(cfg.reward.kwargs or {}),
+            num_envs=int(cfg.env.num_envs if num_envs is None else num_envs),
+            seed=seed,
+            device=cfg.env.device,
+        )
+
+    def _build_agent(self) -> None:
+        cfg = self.cfg
+        if self.ppo:
+            c = cfg.ppo
+            self.actor, self.critic = make_ppo_actor_critic(
+                self.env,
+                hidden_sizes=tuple(c.hidden_sizes),
+                distribution=c.distribution,
+                init_log_std=float(c.init_log_std),
+            )
+            self.loss = ClipPPOLoss(
+                self.actor,
+                self.critic,
+                clip_epsilon=float(c.clip_epsilon),
+                entropy_coeff=float(c.entropy_coeff),
+                critic_coeff=float(c.critic_coeff),
+                normalize_advantage=True,
+            )
+            self.gae = GAE(
+                gamma=float(c.gamma),
+                lmbda=float(c.lmbda),
+                value_network=self.critic,
+                average_gae=False,
+            )
+            self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr))
+            self.replay = None
+        else:
+            c = cfg.sac
+            self.actor, qvalue = make_sac_actor_critic(self.env, hidden_sizes=tuple(c.hidden_sizes))
+            self.critic = qvalue
+            self.loss = SACLoss(
+                self.actor,
+                qvalue,
+                num_qvalue_nets=2,
+                alpha_init=float(c.alpha_init),
+                action_spec=self.env.full_action_spec_unbatched[self.env.action_key],
+            )
+            self.loss.make_value_estimator(gamma=float(c.gamma))
+            self.target_updater = SoftUpdate(self.loss, tau=float(c.tau))
+            self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr))
+            self.replay = TensorDictReplayBuffer(
+                storage=LazyTensorStorage(int(c.replay_size)), batch_size=int(c.batch_size)
+            )
+
+    def _build_model(self) -> None:
+        self.dataset = None
+        self.model = None
+        self.planner = None
+        if not self.model_based:
+            return
+        cfg = self.cfg
+        state_dim = self.env.full_observation_spec_unbatched[STATE_KEY].shape[-1]
+        action_dim = self.env.full_action_spec_unbatched[self.env.action_key].shape[-1]
+        self.model = DeltaDynamicsModel(
+            state_dim, action_dim, hidden_sizes=tuple(cfg.world_model.hidden_sizes)
+        )
+        self.model_optim = torch.optim.Adam(self.model.parameters(), lr=float(cfg.world_model.lr))
+        self.dataset = TransitionDataset({**env_metadata(self.env), "seed": int(cfg.seed)})
+        model_env = LearnedDynamicsEnv(self.model, self.env)
+        p = cfg.planner
+        kwargs = {
+            "num_candidates": int(p.num_candidates),
+            "horizon": int(p.horizon),
+            "discount": float(p.discount),
+        }
+        if self.method == "mpc":
+            self.planner = RandomShootingMPCPlanner(model_env, actor=self.actor, **kwargs)
+        else:
+            self.planner = PolicyGuidedMPCPlanner(model_env, self.actor, **kwargs)
+
+    def _make_checkpoint(self) -> Checkpoint:
+        components: dict[str, Any] = {
+            "loss": self.loss,
+            "optim": self.optim,
+            "rng": GlobalRNGState(),
+            "progress": self.progress,
+        }
+        if self.replay is not None:
+            components["replay"] = self.replay
+        if self.model is not None:
+            components["world_model"] = self.model
+            components["model_optim"] = self.model_optim
+        if self.logger is not None and hasattr(self.logger, "state_dict"):
+            components["logger"] = self.logger
+        checkpoint = Checkpoint(**components)
+        if self.dataset is not None:
+            checkpoint.register("dataset", self.dataset, adapter=_DatasetAdapter())
+        return checkpoint
+
+    def _maybe_resume(self) -> bool:
+        latest = self.rotation.latest()
+        if latest is None:
+            return False
+        expected = dict(self.progress["fingerprint"])
+        self.checkpoint.load(latest)
+        saved = self.progress["fingerprint"]
+        for key, value in expected.items():
+            if saved.get(key) != value:
+                raise ValueError(
+                    f"checkpoint {latest} was written with {key}={saved.get(key)!r}, this run "
+                    f"has {key}={value!r}; use another run_dir or the original config"
+                )
+        logger.info("resumed from %s at %d real steps", latest, self.progress["real_steps"])
+        return True
+
+    # ------------------------------------------------------------- logging
+    def log(self, metrics: dict[str, float], step: int | None = None) -> None:
+        """Logs scalars at the current real-step count."""
+        if self.logger is None:
+            return
+        step = self.progress["real_steps"] if step is None else step
+        for name, value in metrics.items():
+            self.logger.log_scalar(name, float(value), step=step)
+
+    def _log_episodes(self, batch: TensorDictBase) -> None:
+        done = batch.get(("next", "done"))[..., 0]
+        if not done.any():
+            return
+        returns = batch.get(("next", "episode_reward"))[..., 0][done]
+        last = deque(self.progress["last_returns"], maxlen=10)
+        for r in returns.tolist():
+            self.progress["episodes"] += 1
+            last.append(r)
+            self.log({"train/episode_return": r})
+        self.progress["last_returns"] = list(last)
+        arr = np.asarray(last)
+        self.log(
+            {
+                "train/return_last10_mean": arr.mean(),
+                "train/return_last10_min": arr.min(),
+                "train/return_last10_max": arr.max(),
+                "train/episodes": self.progress["episodes"],
+                "train/real_steps_without_random": self.progress["real_steps"]
+                - self.progress["random_steps"],
+            }
+        )
+
+    def evaluate(self) -> float:
+        """Mean return of the policy alone, deterministic, over ``eval_episodes`` episodes."""
+        returns = []
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            for _ in range(int(self.cfg.eval_episodes)):
+                td = self.eval_env.rollout(100_000, self.actor)
+                returns.append(float(td.get(("next", "reward")).sum()))
+        return float(np.mean(returns))
+
+    # ---------------------------------------------------------- model part
+    def refit_model(self) -> None:
+        """Refits the world model on every real transition so far."""
+        wm = self.cfg.world_model
+        start = time.perf_counter()
+        history = fit_dynamics(
+            self.model,
+            self.dataset,
+            batch_size=int(wm.batch_size),
+            max_epochs=int(wm.max_epochs),
+            val_fraction=float(wm.val_fraction),
+            patience=int(wm.patience),
+            seed=int(self.cfg.seed) + self.progress["updates"],
+            optimizer=self.model_optim,
+        )
+        self.log(
+            {
+                "model/train_loss": history.train_loss[-1],
+                "model/val_loss": history.best_val_loss,
+                "model/epochs": history.epochs,
+                "model/transitions": len(self.dataset),
+                "time/model_fit_s": time.perf_counter() - start,
+            }
+        )
+
+    def collect_random(self, bar: tqdm) -> None:
+        """Random-policy real steps that fit the first model (counted in the budget)."""
+        steps = int(self.cfg.world_model.random_steps)
+        n = max(1, self.env.batch_size.numel())
+        frames = min(1000 * n, -(-steps // n) * n)
+        collector = Collector(
+            self.env,
+            RandomPolicy(self.env.full_action_spec),
+            frames_per_batch=frames,
+            total_frames=-(-steps // frames) * frames,
+            auto_register_policy_transforms=False,
+        )
+        for batch in collector:
+            self._count(batch, bar, random=True)
+            self.dataset.extend(batch)
+            if self.replay is not None:
+                self.replay.extend(self._replay_view(batch))
+        collector.shutdown()
+        self.refit_model()
+        self.progress["phase"] = "planning"
+
+    # -------------------------------------------------------------- updates
+    def ppo_update(self, batch: TensorDictBase) -> None:
+        """Thesis PPO: GAE once per batch, ``epochs`` passes of ``minibatch_size`` minibatches."""
+        c = self.cfg.ppo
+        with torch.no_grad():
+            self.gae(batch)
+        flat = batch.reshape(-1)
+        n = flat.shape[0]
+        mb = int(c.minibatch_size)
+        stats: dict[str, list[float]] = {}
+        for _ in range(int(c.epochs)):
+            perm = torch.randperm(n)
+            for i in range(0, n, mb):
+                sub = flat[perm[i : i + mb]]
+                out = self.loss(sub)
+                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                self.optim.zero_grad(set_to_none=True)
+                total.backward()
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(c.max_grad_norm))
+                self.optim.step()
+                for k in ("loss_objective", "loss_critic", "loss_entropy", "kl_approx"):
+                    if k in out:
+                        stats.setdefault(k, []).append(float(out[k].detach()))
+        self.progress["updates"] += 1
+        scale = self.actor.module[0].module[-1].state_independent_scale
+        self.log({f"loss/{k}": float(np.mean(v)) for k, v in stats.items()})
+        self.log(
+            {
+                "train/policy_log_std": float(scale.detach().mean()),
+                "train/updates": self.progress["updates"],
+            }
+        )
+
+    def _replay_view(self, batch: TensorDictBase) -> TensorDictBase:
+        """The entries SACLoss reads, flattened (planner extras and log-probs are dropped)."""
+        return batch.reshape(-1).select(*self.loss.in_keys, strict=False)
+
+    def sac_update(self, batch: TensorDictBase) -> None:
+        """``utd_ratio`` SAC updates per collected frame, after the initial random frames."""
+        c = self.cfg.sac
+        self.replay.extend(self._replay_view(batch))
+        if self.progress["real_steps"] < int(c.init_random_frames):
+            return
+        stats: dict[str, list[float]] = {}
+        for _ in range(max(1, int(batch.numel() * float(c.utd_ratio)))):
+            out = self.loss(self.replay.sample())
+            total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+            self.optim.zero_grad(set_to_none=True)
+            total.backward()
+            self.optim.step()
+            self.target_updater.step()
+            for k in ("loss_actor", "loss_qvalue", "loss_alpha", "alpha"):
+                stats.setdefault(k, []).append(float(out[k].detach()))
+        self.progress["updates"] += 1
+        self.log({f"loss/{k}": float(np.mean(v)) for k, v in stats.items()})
+
+    # ----------------------------------------------------------------- loop
+    def _count(self, batch: TensorDictBase, bar: tqdm, random: bool = False) -> None:
+        n = batch.numel()
+        self.progress["real_steps"] += n
+        if random:
+            self.progress["random_steps"] += n
+        bar.update(n)
+        self._log_episodes(batch)
+
+    def _policy(self) -> Any:
+        if self.progress["phase"] == "planning":
+            return self.planner
+        if self.method == "sac" and self.progress["real_steps"] < int(
+            self.cfg.sac.init_random_frames
+        ):
+            return RandomPolicy(self.env.full_action_spec)
+        return self.actor
+
+    def _planning_done(self) -> bool:
+        if self.method in ("mpc", "ppo_mpc"):
+            return self.progress["updates"] >= int(self.cfg.planning_updates)
+        return False
+
+    def train(self) -> dict[str, Any]:
+        """Runs until ``total_steps`` real steps; returns (and writes) a summary."""
+        cfg = self.cfg
+        total = int(cfg.total_steps)
+        bar = tqdm(
+            total=total,
+            initial=self.progress["real_steps"],
+            desc=cfg.method,
+            unit="step",
+            disable=not cfg.progress,
+        )
+        start = time.perf_counter()
+        if self.progress["phase"] == "random":
+            self.collect_random(bar)
+            self.progress["next_refit"] = self.progress["real_steps"] + int(
+                cfg.sac.refit_every_steps
+            )
+        frames = int((cfg.ppo if self.ppo else cfg.sac).frames_per_batch)
+        while self.progress["real_steps"] < total:
+            if self._planning_done() and self.progress["phase"] == "planning":
+                self.progress["phase"] = "model_free"
+                self.progress["switch_step"] = self.progress["real_steps"]
+                self.log({"train/switch_to_model_free": 1.0})
+                logger.info("warm start: pure PPO from %d real steps", self.progress["real_steps"])
+            policy = self._policy()
+            collector = Collector(
+                self.env,
+                policy,
+                frames_per_batch=frames,
+                total_frames=-1,
+                auto_register_policy_transforms=False,
+            )
+            phase = self.progress["phase"]
+            for batch in collector:
+                t_collect = time.perf_counter()
+                self._count(batch, bar)
+                if phase == "planning":
+                    self.dataset.extend(batch)
+                    if ("planner", "best_return") in batch.keys(True):
+                        self.log(
+                            {
+                                "planner/best_return": batch["planner", "best_return"].mean(),
+                                "planner/mean_return": batch["planner", "mean_return"].mean(),
+                            }
+                        )
+                if self.ppo:
+                    self.ppo_update(batch)
+                    refit = (
+                        phase == "planning"
+                        and self.progress["updates"] % int(cfg.world_model.refit_every) == 0
+                    )
+                else:
+                    self.sac_update(batch)
+                    refit = (
+                        phase == "planning"
+                        and self.progress["real_steps"] >= self.progress["next_refit"]
+                    )
+                    if refit:
+                        self.progress["next_refit"] += int(cfg.sac.refit_every_steps)
+                if refit:
+                    self.refit_model()
+                self.log(
+                    {
+                        "time/update_s": time.perf_counter() - t_collect,
+                        "time/steps_per_s": self.progress["real_steps"]
+                        / max(1e-9, time.perf_counter() - start),
+                    }
+                )
+                if self.progress["real_steps"] >= self.progress["next_eval"]:
+                    self.log({"eval/return": self.evaluate()})
+                    self.progress["next_eval"] += int(cfg.eval_every)
+                if self.progress["real_steps"] >= self.progress["next_checkpoint"]:
+                    self.save_checkpoint()
+                    self.progress["next_checkpoint"] += int(cfg.checkpoint.every_steps)
+                if self.progress["real_steps"] >= total:
+                    break
+                if self._planning_done() and phase == "planning":
+                    break
+                if self._policy() is not policy:
+                    break
+            collector.shutdown()
+        bar.close()
+        self.save_checkpoint()
+        summary = {
+            "method": cfg.method,
+            "env": cfg.env.id,
+            "reward": cfg.reward.name,
+            "seed": int(cfg.seed),
+            "real_steps": self.progress["real_steps"],
+            "random_steps": self.progress["random_steps"],
+            "updates": self.progress["updates"],
+            "episodes": self.progress["episodes"],
+            "switch_step": self.progress["switch_step"],
+            "last10_mean_return": float(np.mean(self.progress["last_returns"]))
+            if self.progress["last_returns"]
+            else None,
+            "final_eval_return": self.evaluate(),
+            "seconds": time.perf_counter() - start,
+            "resumed": self.resumed,
+        }
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+    def save_checkpoint(self) -> None:
+        """Atomically writes a rotated checkpoint of everything needed to continue."""
+        self.rotation.save(self.checkpoint, step=self.progress["real_steps"])
