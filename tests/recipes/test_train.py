@@ -1,0 +1,184 @@
+"""The training recipe: configs compose, every method smoke-runs, bad configs fail early."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from torchrl_mbmf.trainers import ConfigError, validate_train_config
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = str(ROOT / "configs")
+TINY = [
+    "env=pendulum",
+    "ppo.frames_per_batch=192",
+    "planning_updates=2",
+    "world_model.random_steps=300",
+    "world_model.max_epochs=2",
+    "world_model.hidden_sizes=[32,32]",
+    "world_model.refit_every=1",
+    "sac.frames_per_batch=100",
+    "sac.init_random_frames=200",
+    "sac.batch_size=32",
+    "sac.hidden_sizes=[32,32]",
+    "sac.refit_every_steps=300",
+    "eval_every=400",
+    "checkpoint.every_steps=400",
+    "progress=false",
+]
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(CONFIGS, version_base="1.3"):
+        return compose("train", overrides=list(overrides))
+
+
+def _run(run_dir: Path, *overrides: str, timeout: int = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "train.py"), *overrides, f"run_dir={run_dir}"],
+        cwd=run_dir.parent,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+@pytest.mark.parametrize(
+    "group", ["env", "reward", "world_model", "planner", "logger", "experiment"]
+)
+def test_every_config_composes(group):
+    for path in sorted((ROOT / "configs" / group).glob("*.yaml")):
+        cfg = _compose(f"{group}={path.stem}")
+        validate_train_config(cfg)
+
+
+@pytest.mark.parametrize("method", ["ppo", "mpc", "ppo_mpc", "sac", "sac_mpc"])
+def test_method_smoke_run(tmp_path, method):
+    run = tmp_path / method
+    proc = _run(run, f"method={method}", "total_steps=900", *TINY)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["real_steps"] >= 900
+    if method in ("mpc", "ppo_mpc", "sac_mpc"):
+        assert summary["random_steps"] == 300
+    if method in ("mpc", "ppo_mpc"):
+        assert summary["switch_step"] == 300 + 2 * 192
+    assert (run / "config.yaml").exists() and (run / "git_commit.txt").exists()
+    scalars = run / "logs" / "scalars"
+    assert (scalars / "train" / "episode_return.csv").exists()
+    assert (scalars / "eval" / "return.csv").exists()
+    if method != "ppo" and method != "sac":
+        assert (scalars / "model" / "val_loss.csv").exists()
+    assert any((run / "checkpoints").iterdir())
+
+
+def test_half_cheetah_ppo_mpc_tiny(tmp_path):
+    run = tmp_path / "hc"
+    proc = _run(
+        run,
+        "method=ppo_mpc",
+        "total_steps=300",
+        "ppo.frames_per_batch=64",
+        "ppo.minibatch_size=32",
+        "planning_updates=2",
+        "world_model.random_steps=150",
+        "world_model.max_epochs=1",
+        "world_model.hidden_sizes=[16]",
+        "planner.horizon=3",
+        "planner.num_candidates=4",
+        "eval_every=100000",
+        "eval_episodes=1",
+        "checkpoint.every_steps=100000",
+        "progress=false",
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run / "summary.json").read_text())["env"] == "HalfCheetah-v5"
+
+
+def test_resume_after_sigkill(tmp_path):
+    run = tmp_path / "resume"
+    args = [
+        sys.executable,
+        str(ROOT / "recipes" / "train.py"),
+        "method=ppo_mpc",
+        "total_steps=2500",
+        *TINY,
+        "checkpoint.every_steps=500",
+        f"run_dir={run}",
+    ]
+    proc = subprocess.Popen(
+        args, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        if (run / "checkpoints").exists() and any((run / "checkpoints").glob("checkpoint-*")):
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (run / "summary.json").exists()
+    done = _run(run, "method=ppo_mpc", "total_steps=2500", *TINY, "checkpoint.every_steps=500")
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["resumed"] is True
+    assert summary["real_steps"] >= 2500
+    mismatch = _run(run, "method=ppo", "total_steps=2500", *TINY)
+    assert mismatch.returncode != 0
+    assert "method='ppo_mpc'" in mismatch.stderr
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["method=dqn"], "method='dqn' is not a method; allowed"),
+        (["reward=default", "reward.name=bogus"], "reward.name='bogus'"),
+        (["planner.horizon=0"], "planner.horizon must be a number >= 1"),
+        (["planner.num_candidates=0"], "planner.num_candidates must be a number >= 1"),
+        (["total_steps=100000", "planning_updates=200"], "beyond total_steps=100000"),
+        (["env.num_envs=3"], "multiple of env.num_envs=3"),
+        (["logger.backend=foo"], "logger.backend='foo'"),
+    ],
+)
+def test_bad_config_fails_before_work(overrides, message):
+    cfg = _compose(*overrides)
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        validate_train_config(cfg)
+
+
+def test_bad_config_subprocess_message(tmp_path):
+    proc = _run(tmp_path / "bad", "planner.horizon=0")
+    assert proc.returncode != 0
+    assert "planner.horizon must be a number >= 1, got 0" in proc.stderr
+    assert not (tmp_path / "bad" / "checkpoints").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["ppo_mpc", "sac_mpc"])
+def test_improves_return_on_short_budget(tmp_path, method):
+    run = tmp_path / method
+    proc = _run(
+        run,
+        f"method={method}",
+        "env=pendulum",
+        "total_steps=20000",
+        "planning_updates=5",
+        "world_model.random_steps=2000",
+        "world_model.max_epochs=30",
+        "eval_every=5000",
+        "checkpoint.every_steps=100000",
+        "progress=false",
+        timeout=3000,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    import csv
+
+    rows = list(csv.reader((run / "logs" / "scalars" / "train" / "episode_return.csv").open()))
+    returns = [float(r[1]) for r in rows if r]
+    assert sum(returns[-5:]) / 5 > sum(returns[:5]) / 5
