@@ -1,10 +1,19 @@
 """Planner speed: ms per plan, FLOP floor, CEMPlanner reference, PPO-MPC collection frames/s.
 
-python benchmarks/planner.py
+python benchmarks/planner.py               # 2 torch threads -> results/planner.json
+python benchmarks/planner.py --threads 1   # -> results/planner_threads1.json
+
+The FLOP floor divides the plan's multiply-add count by the higher of two float32 matmul peaks
+measured in the same run: ``torch.mm`` and the oneDNN linear with pre-packed weights that the
+planner's model step uses (the second is the faster kernel on recent x86 CPUs). The 1-minute
+load average is recorded: on a shared 2-core machine, two torch threads stall badly when other
+processes compete for the cores, so compare runs only at similar load.
 """
 
 from __future__ import annotations
 
+import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -38,6 +47,23 @@ def plan_flops(model: DeltaDynamicsModel, actor_cells=(64, 64), obs_dim=17, act_
     return M * H * (model_f + actor_f)
 
 
+def packed_linear_peak_gflops(size: int = 1024) -> float:
+    """Float32 GFLOP/s of oneDNN's linear with pre-packed weights (0 when unavailable)."""
+    if (
+        not hasattr(torch.ops.mkldnn, "_linear_pointwise")
+        or not torch.backends.mkldnn.is_available()
+    ):
+        return 0.0
+    x, w, b = torch.randn(size, size), torch.randn(size, size), torch.zeros(size)
+    packed = torch.ops.mkldnn._reorder_linear_weight(w, None)
+    sec = time_call(
+        lambda: torch.ops.mkldnn._linear_pointwise(x, packed, b, "none", [], ""),
+        repeats=5,
+        number=10,
+    )
+    return 2 * size**3 / sec / 1e9
+
+
 def collection_fps(num_envs: int, frames: int) -> float:
     real = make_half_cheetah_env(num_envs=num_envs, seed=0)
     actor, _ = make_ppo_actor_critic(real)
@@ -62,9 +88,15 @@ def collection_fps(num_envs: int, frames: int) -> float:
 
 
 def main() -> None:
-    torch.set_num_threads(2)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    peak = matmul_peak_gflops()
+    load_before = os.getloadavg()[0]
+    mm_peak = matmul_peak_gflops()
+    packed_peak = packed_linear_peak_gflops()
+    peak = max(mm_peak, packed_peak)
     real = make_half_cheetah_env(seed=0)
     actor, _ = make_ppo_actor_critic(real)
     model = DeltaDynamicsModel(18, 6)
@@ -111,7 +143,12 @@ def main() -> None:
     fps = {n: collection_fps(n, 1024 if n > 1 else 512) for n in (1, 8)}
     for n, v in fps.items():
         rows.append({"planner": f"PPO-MPC Collector, {n} env(s)", "states": n, "frames_per_s": v})
-    print(f"matmul peak: {peak:.1f} GFLOP/s; plan cost {flops / 1e6:.1f} MFLOP per state")
+    load_after = os.getloadavg()[0]
+    print(
+        f"matmul peak: torch.mm {mm_peak:.1f}, packed oneDNN linear {packed_peak:.1f} GFLOP/s; "
+        f"plan cost {flops / 1e6:.1f} MFLOP per state; load average {load_before:.1f} -> "
+        f"{load_after:.1f} on {os.cpu_count()} cores"
+    )
     print_table(rows)
     targets = {
         "ms_per_plan_1_state": 2.0,
@@ -121,10 +158,13 @@ def main() -> None:
         "prototype_frames_per_s": 65,
     }
     path = write(
-        "planner",
+        "planner" if args.threads == 2 else f"planner_threads{args.threads}",
         rows,
         {
             "matmul_peak_gflops": peak,
+            "torch_mm_peak_gflops": mm_peak,
+            "packed_linear_peak_gflops": packed_peak,
+            "load_average_1min": [load_before, load_after],
             "plan_mflop_per_state": flops / 1e6,
             "m": M,
             "h": H,

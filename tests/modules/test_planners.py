@@ -5,6 +5,8 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torch import nn
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 
@@ -15,6 +17,7 @@ from torchrl_mbmf.modules import (
     RandomShootingMPCPlanner,
     make_ppo_actor_critic,
 )
+from torchrl_mbmf.modules.planners import CachedModelStep
 
 C = torch.tensor([1.0, -2.0, 0.5, 3.0, -1.0, 2.0])
 
@@ -29,6 +32,15 @@ def closed_form_env(real):
         model.net[0].weight.copy_(w)
         model.net[0].bias.zero_()
     return LearnedDynamicsEnv(model, real)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny nets run faster on one thread, and do not stall when the machine is shared."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -221,3 +233,78 @@ def test_errors(real, actor):
     pendulum_actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
     with pytest.raises(ValueError, match="cannot read the env's 'observation'"):
         PolicyGuidedMPCPlanner(env, pendulum_actor)
+
+
+def test_generic_path_with_value_module_agrees(real):
+    """The terminal value reads the same entries on both paths (state and observation)."""
+    torch.manual_seed(0)
+    model_env = LearnedDynamicsEnv(DeltaDynamicsModel(18, 6, hidden_sizes=(16,)), real)
+    value = ValueOperator(nn.Linear(17, 1), in_keys=["observation"])
+    planner = RandomShootingMPCPlanner(
+        model_env, num_candidates=7, horizon=3, value_module=value, discount=0.9
+    )
+    td = make_half_cheetah_env(num_envs=2, seed=3).reset()
+    torch.manual_seed(2)
+    fast = planner.plan(td.clone())
+    planner.fast_path = False
+    torch.manual_seed(2)
+    generic = planner.plan(td.clone())
+    torch.testing.assert_close(fast.returns, generic.returns, rtol=1e-4, atol=1e-4)
+    assert torch.equal(fast.best, generic.best)
+
+
+class _LinearModelEnv(ModelBasedEnvBase):
+    """A non-LearnedDynamicsEnv model env: obs' = obs + [a, 0, 0], reward = a . 1 (closed form)."""
+
+    def __init__(self, action_spec=None):
+        module = TensorDictModule(
+            lambda obs, a: (obs + torch.nn.functional.pad(a, (0, 2)), a.sum(-1, keepdim=True)),
+            in_keys=["observation", "action"],
+            out_keys=["observation", "reward"],
+        )
+        super().__init__(module)
+        self.observation_spec = Composite(observation=Unbounded(shape=(3,)))
+        self.action_spec = action_spec if action_spec is not None else Bounded(-2.0, 2.0, (1,))
+        self.reward_spec = Unbounded(shape=(1,))
+
+    def _reset(self, tensordict=None, **kwargs):
+        return tensordict.select("observation").copy()
+
+
+def test_generic_path_on_any_model_based_env():
+    env = _LinearModelEnv()
+    planner = RandomShootingMPCPlanner(env, num_candidates=9, horizon=4)
+    assert not planner.fast_path
+    td = TensorDict(observation=torch.randn(5, 3), batch_size=[5])
+    before = td.clone()
+    torch.manual_seed(11)
+    out = planner(td)
+    torch.manual_seed(11)
+    draws = [torch.rand(5, 9, 1) * 4 - 2 for _ in range(4)]
+    returns = sum(d[..., 0] for d in draws)
+    expected = draws[0][torch.arange(5), returns.argmax(-1)]
+    torch.testing.assert_close(out["action"], expected)
+    torch.testing.assert_close(out["observation"], before["observation"])
+    with pytest.raises(ValueError, match="must be bounded"):
+        RandomShootingMPCPlanner(_LinearModelEnv(Unbounded(shape=(1,))))
+
+
+def test_cached_model_step_matches_model_and_sees_refits():
+    torch.manual_seed(0)
+    model = DeltaDynamicsModel(18, 6, hidden_sizes=(300, 300))
+    s, a = torch.randn(64, 18), torch.rand(64, 6) * 2 - 1
+    model.fit_normalizer(s, a, s + 0.1 * torch.randn(64, 18), torch.randn(64))
+    step = CachedModelStep(model)
+    with torch.no_grad():
+        first = step()
+        assert step() is first  # cached while the weights do not change
+        for got, want in zip(first(s[:15], a[:15]), model(s[:15], a[:15]), strict=True):
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    optim = torch.optim.SGD(model.parameters(), lr=0.1)
+    model(s, a)[0].square().mean().backward()
+    optim.step()  # an in-place update, as a refit inside a Collector loop
+    with torch.no_grad():
+        assert step() is not first
+        torch.testing.assert_close(step()(s, a)[0], model(s, a)[0], rtol=1e-5, atol=1e-5)
+        model.fit_normalizer(s, a, s + torch.randn(64, 18), torch.randn(64))
+        torch.testing.assert_close(step()(s, a)[1], model(s, a)[1], rtol=1e-5, atol=1e-5)

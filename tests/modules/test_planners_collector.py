@@ -21,6 +21,15 @@ from torchrl_mbmf.modules import (
 from torchrl_mbmf.trainers import fit_dynamics
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny nets run faster on one thread, and do not stall when the machine is shared."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def _collect(env, policy, frames):
     collector = Collector(
         env,
@@ -76,21 +85,32 @@ def test_mpc_batch_and_sac_replay_buffer():
         (out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]).backward()
 
 
-@pytest.mark.parametrize("planner_cls", [PolicyGuidedMPCPlanner, RandomShootingMPCPlanner])
-def test_pendulum_full_stack(planner_cls):
-    """Fit a model on random Pendulum data, plan with it, collect real steps."""
+@pytest.fixture(scope="module")
+def pendulum_model():
+    """A small model fitted on random Pendulum data (shared by the full-stack tests)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
     torch.manual_seed(0)
     real = make_env("Pendulum-v1", seed=0)
     data = collect_random_transitions(real, 600, seed=0)
     model = DeltaDynamicsModel(3, 1, hidden_sizes=(64, 64))
     history = fit_dynamics(model, data, lr=1e-3, batch_size=64, max_epochs=15, seed=0)
+    torch.set_num_threads(threads)
     assert history.best_val_loss < 0.5
+    return real, data, model
+
+
+@pytest.mark.parametrize("planner_cls", [PolicyGuidedMPCPlanner, RandomShootingMPCPlanner])
+def test_pendulum_full_stack(pendulum_model, planner_cls):
+    """Fit a model on random Pendulum data, plan with it, collect real steps."""
+    real, data, model = pendulum_model
+    torch.manual_seed(0)
     actor, _ = make_ppo_actor_critic(real, hidden_sizes=(16, 16))
     model_env = LearnedDynamicsEnv(model, real)
     if planner_cls is PolicyGuidedMPCPlanner:
         planner = planner_cls(model_env, actor, num_candidates=15, horizon=10)
     else:
-        planner = planner_cls(model_env, num_candidates=200, horizon=15, actor=actor)
+        planner = planner_cls(model_env, num_candidates=64, horizon=10, actor=actor)
     batch = _collect(real, planner, 200)
     assert batch["action"].abs().max() <= 2.0
     assert torch.isfinite(batch["action_log_prob"]).all()

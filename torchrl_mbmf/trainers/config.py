@@ -12,6 +12,7 @@ METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc", "sac", "sac_mpc")
 MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc")
 #: Methods trained with PPO.
 PPO_METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc")
+SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
 
 
@@ -54,6 +55,10 @@ def validate_train_config(cfg: Any) -> None:
         raise ConfigError(
             f"logger.backend={cfg['logger']['backend']!r} is not supported; allowed: "
             f"{list(LOGGERS)}"
+        )
+    if cfg["sac"].get("update", "stock") not in SAC_UPDATES:
+        raise ConfigError(
+            f"sac.update={cfg['sac']['update']!r} is not supported; allowed: {list(SAC_UPDATES)}"
         )
     for key in (
         "total_steps",

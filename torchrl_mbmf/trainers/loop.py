@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import random
@@ -39,6 +40,8 @@ from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.planners import PolicyGuidedMPCPlanner, RandomShootingMPCPlanner
 from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_train_config
 from torchrl_mbmf.trainers.dynamics import fit_dynamics
+from torchrl_mbmf.trainers.ppo import ppo_update
+from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
 logger = logging.getLogger(__name__)
 
@@ -118,9 +121,12 @@ class Trainer:
 
     Every real env step counts toward ``total_steps``, the random-data steps included.
     Checkpoints (``torchrl.checkpoint``, atomic, rotated) are written every
-    ``checkpoint.every_steps`` real steps at batch boundaries; a new ``Trainer`` on the same
-    ``run_dir`` resumes from the latest one. A resumed run restarts the episode that was in
-    progress from a fresh reset (the simulator's state is not part of the checkpoint).
+    ``checkpoint.every_steps`` real steps, between two collectors: the collector is closed and
+    the next one starts from envs reseeded with ``seed + real_steps``, so the episode in
+    progress is truncated there (GAE bootstraps it like any batch end). This happens in an
+    uninterrupted run exactly as in a resumed one, so a run killed and resumed from its latest
+    checkpoint ends with the same weights as one that never stopped (on CPU, same thread count).
+    A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -231,6 +237,10 @@ class Trainer:
             self.loss.make_value_estimator(gamma=float(c.gamma))
             self.target_updater = SoftUpdate(self.loss, tau=float(c.tau))
             self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr))
+            if c.update == "fused":
+                self.sac_step = FusedSACUpdate(self.loss, self.optim, self.target_updater)
+            else:
+                self.sac_step = sac_update_step(self.loss, self.optim, self.target_updater)
             self.replay = TensorDictReplayBuffer(
                 storage=LazyTensorStorage(int(c.replay_size)), batch_size=int(c.batch_size)
             )
@@ -285,7 +295,8 @@ class Trainer:
         if latest is None:
             return False
         expected = dict(self.progress["fingerprint"])
-        self.checkpoint.load(latest)
+        # Compare the config first (the progress entry alone), then restore everything.
+        self.checkpoint.load(latest, components=["progress"])
         saved = self.progress["fingerprint"]
         for key, value in expected.items():
             if saved.get(key) != value:
@@ -293,6 +304,7 @@ class Trainer:
                     f"checkpoint {latest} was written with {key}={saved.get(key)!r}, this run "
                     f"has {key}={value!r}; use another run_dir or the original config"
                 )
+        self.checkpoint.load(latest)
         logger.info("resumed from %s at %d real steps", latest, self.progress["real_steps"])
         return True
 
@@ -331,6 +343,7 @@ class Trainer:
     def evaluate(self) -> float:
         """Mean return of the policy alone, deterministic, over ``eval_episodes`` episodes."""
         returns = []
+        self.eval_env.set_seed(int(self.cfg.seed) + 1000 + self.progress["real_steps"])
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             for _ in range(int(self.cfg.eval_episodes)):
                 td = self.eval_env.rollout(100_000, self.actor)
@@ -387,28 +400,18 @@ class Trainer:
     def ppo_update(self, batch: TensorDictBase) -> None:
         """Thesis PPO: GAE once per batch, ``epochs`` passes of ``minibatch_size`` minibatches."""
         c = self.cfg.ppo
-        with torch.no_grad():
-            self.gae(batch)
-        flat = batch.reshape(-1)
-        n = flat.shape[0]
-        mb = int(c.minibatch_size)
-        stats: dict[str, list[float]] = {}
-        for _ in range(int(c.epochs)):
-            perm = torch.randperm(n)
-            for i in range(0, n, mb):
-                sub = flat[perm[i : i + mb]]
-                out = self.loss(sub)
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-                self.optim.zero_grad(set_to_none=True)
-                total.backward()
-                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(c.max_grad_norm))
-                self.optim.step()
-                for k in ("loss_objective", "loss_critic", "loss_entropy", "kl_approx"):
-                    if k in out:
-                        stats.setdefault(k, []).append(float(out[k].detach()))
+        stats = ppo_update(
+            self.loss,
+            self.gae,
+            self.optim,
+            batch,
+            epochs=int(c.epochs),
+            minibatch_size=int(c.minibatch_size),
+            max_grad_norm=float(c.max_grad_norm),
+        )
         self.progress["updates"] += 1
         scale = self.actor.module[0].module[-1].state_independent_scale
-        self.log({f"loss/{k}": float(np.mean(v)) for k, v in stats.items()})
+        self.log({f"loss/{k}": v for k, v in stats.items()})
         self.log(
             {
                 "train/policy_log_std": float(scale.detach().mean()),
@@ -428,16 +431,14 @@ class Trainer:
             return
         stats: dict[str, list[float]] = {}
         for _ in range(max(1, int(batch.numel() * float(c.utd_ratio)))):
-            out = self.loss(self.replay.sample())
-            total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
-            self.optim.zero_grad(set_to_none=True)
-            total.backward()
-            self.optim.step()
-            self.target_updater.step()
-            for k in ("loss_actor", "loss_qvalue", "loss_alpha", "alpha"):
-                stats.setdefault(k, []).append(float(out[k].detach()))
+            out = self.sac_step(self.replay.sample())
+            for k, v in out.items():
+                stats.setdefault(k, []).append(float(v))
         self.progress["updates"] += 1
         self.log({f"loss/{k}": float(np.mean(v)) for k, v in stats.items()})
+        scale = batch.get("scale", None)
+        if scale is not None:
+            self.log({"train/policy_log_std": float(scale.log().mean())})
 
     # ----------------------------------------------------------------- loop
     def _count(self, batch: TensorDictBase, bar: tqdm, random: bool = False) -> None:
@@ -487,6 +488,9 @@ class Trainer:
                 self.log({"train/switch_to_model_free": 1.0})
                 logger.info("warm start: pure PPO from %d real steps", self.progress["real_steps"])
             policy = self._policy()
+            # Every collector starts from freshly seeded envs, so a resumed run continues
+            # exactly like an uninterrupted one (checkpoints happen between collectors).
+            self.env.set_seed(int(cfg.seed) + self.progress["real_steps"])
             collector = Collector(
                 self.env,
                 policy,
@@ -533,16 +537,18 @@ class Trainer:
                 if self.progress["real_steps"] >= self.progress["next_eval"]:
                     self.log({"eval/return": self.evaluate()})
                     self.progress["next_eval"] += int(cfg.eval_every)
-                if self.progress["real_steps"] >= self.progress["next_checkpoint"]:
-                    self.save_checkpoint()
-                    self.progress["next_checkpoint"] += int(cfg.checkpoint.every_steps)
-                if self.progress["real_steps"] >= total:
+                checkpoint_due = self.progress["real_steps"] >= self.progress["next_checkpoint"]
+                if checkpoint_due or self.progress["real_steps"] >= total:
                     break
                 if self._planning_done() and phase == "planning":
                     break
                 if self._policy() is not policy:
                     break
             collector.shutdown()
+            if self.progress["real_steps"] >= self.progress["next_checkpoint"]:
+                while self.progress["next_checkpoint"] <= self.progress["real_steps"]:
+                    self.progress["next_checkpoint"] += int(cfg.checkpoint.every_steps)
+                self.save_checkpoint()
         bar.close()
         self.save_checkpoint()
         summary = {
@@ -559,12 +565,27 @@ class Trainer:
             if self.progress["last_returns"]
             else None,
             "final_eval_return": self.evaluate(),
+            "params_sha256": self.parameters_digest(),
             "seconds": time.perf_counter() - start,
             "resumed": self.resumed,
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         return summary
 
+    def parameters_digest(self) -> str:
+        """SHA-256 of every trained tensor (policy, critics, world model): equal runs match."""
+        digest = hashlib.sha256()
+        modules = [self.loss] + ([self.model] if self.model is not None else [])
+        for module in modules:
+            for name, tensor in sorted(module.state_dict().items()):
+                digest.update(name.encode())
+                digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+        return digest.hexdigest()
+
     def save_checkpoint(self) -> None:
         """Atomically writes a rotated checkpoint of everything needed to continue."""
-        self.rotation.save(self.checkpoint, step=self.progress["real_steps"])
+        latest = self.rotation.latest()
+        step = self.progress["real_steps"]
+        if latest is not None and latest.name.endswith(f"{step:012d}"):
+            return
+        self.rotation.save(self.checkpoint, step=step)

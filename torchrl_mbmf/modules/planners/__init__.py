@@ -1,13 +1,25 @@
-from torchrl_mbmf.modules.planners.common import Plan, ShootingPlanner, select_best
+from torchrl_mbmf.modules.planners.common import (
+    Plan,
+    ShootingPlanner,
+    discounted_return,
+    expand_candidates,
+    gather_candidate,
+    select_best,
+)
+from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
 from torchrl_mbmf.modules.planners.random_shooting import RandomShootingMPCPlanner
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
 
 __all__ = [
     "ActorSampler",
+    "CachedModelStep",
     "Plan",
     "PolicyGuidedMPCPlanner",
     "RandomShootingMPCPlanner",
     "ShootingPlanner",
+    "discounted_return",
+    "expand_candidates",
+    "gather_candidate",
     "select_best",
 ]

@@ -1,4 +1,4 @@
-"""Shared stages of the shooting planners: roll out, score, select."""
+"""Shared stages of the shooting planners: expand, roll out, score, select."""
 
 from __future__ import annotations
 
@@ -9,10 +9,94 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
+from torchrl.data import Bounded
 from torchrl.envs.model_based import ModelBasedEnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.planners import MPCPlannerBase
 
+from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
+
+
+# ------------------------------------------------------------------ pure helpers
+def expand_candidates(x: torch.Tensor, num_candidates: int) -> torch.Tensor:
+    """Repeats a batch of vectors ``[*B, d]`` as ``[*B, m, d]`` candidates (a view, no copy).
+
+    Args:
+        x: real states or observations ``[*B, d]``.
+        num_candidates: ``m``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners import expand_candidates
+        >>> expand_candidates(torch.zeros(4, 3), 15).shape
+        torch.Size([4, 15, 3])
+    """
+    return x.unsqueeze(-2).expand(*x.shape[:-1], num_candidates, x.shape[-1])
+
+
+def discounted_return(
+    rewards: torch.Tensor,
+    discount: float = 1.0,
+    terminal_value: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``sum_t discount**t * r_t (+ discount**h * V(s_h))`` over the last dim of ``rewards``.
+
+    Args:
+        rewards: imagined rewards ``[*B, m, h]``.
+        discount: per-step discount. Defaults to ``1.0`` (the thesis' plain sum).
+        terminal_value: value of the last imagined state ``[*B, m]``. Defaults to none.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners import discounted_return
+        >>> discounted_return(torch.tensor([[1.0, 1.0, 1.0]]), 0.5, torch.tensor([8.0]))
+        tensor([2.7500])
+    """
+    h = rewards.shape[-1]
+    if discount == 1.0:
+        total = rewards.sum(-1)
+    else:
+        weights = discount ** torch.arange(h, dtype=rewards.dtype, device=rewards.device)
+        total = (rewards * weights).sum(-1)
+    if terminal_value is not None:
+        total = total + discount**h * terminal_value
+    return total
+
+
+def select_best(returns: torch.Tensor) -> torch.Tensor:
+    """Index of the highest-scoring candidate along the last dim (first one on ties).
+
+    Args:
+        returns: candidate scores ``[*B, m]``.
+
+    Returns:
+        ``[*B]`` indices.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners import select_best
+        >>> select_best(torch.tensor([[1.0, 3.0, 3.0]]))
+        tensor([1])
+    """
+    return returns.argmax(-1)
+
+
+def gather_candidate(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Picks candidate ``index[b]`` of every batch element: ``[*B, m, d]`` -> ``[*B, d]``.
+
+    Args:
+        x: per-candidate vectors ``[*B, m, d]``.
+        index: ``[*B]`` candidate indices.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners import gather_candidate
+        >>> gather_candidate(torch.arange(6.0).reshape(1, 3, 2), torch.tensor([2]))
+        tensor([[4., 5.]])
+    """
+    idx = index[..., None, None].expand(*index.shape, 1, x.shape[-1])
+    return x.gather(-2, idx).squeeze(-2)
 
 
 @dataclass
@@ -40,43 +124,27 @@ class Plan:
     @property
     def action(self) -> torch.Tensor:
         """First action of the best candidate ``[*B, action_dim]``."""
-        index = self.best[..., None, None].expand(*self.best.shape, 1, self.first_actions.shape[-1])
-        return self.first_actions.gather(-2, index).squeeze(-2)
+        return gather_candidate(self.first_actions, self.best)
 
 
-def select_best(returns: torch.Tensor) -> torch.Tensor:
-    """Index of the highest-scoring candidate along the last dim (first one on ties).
-
-    Args:
-        returns: candidate scores ``[*B, m]``.
-
-    Returns:
-        ``[*B]`` indices.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.modules.planners import select_best
-        >>> select_best(torch.tensor([[1.0, 3.0, 3.0]]))
-        tensor([1])
-    """
-    return returns.argmax(-1)
-
-
+# --------------------------------------------------------------------- planner
 class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
     """Base of the shooting planners: ``m`` candidates, ``h`` imagined steps, best first action.
 
-    For a real-state batch ``[*B]`` the planner expands to ``[*B, m]`` candidates, rolls them
-    ``h`` steps in the learned env drawing each step's actions from
-    :meth:`sample_actions`, scores them with :meth:`score` (discounted sum of predicted
-    rewards, plus the discounted terminal value when a ``value_module`` is given) and writes
-    the first action of the best candidate of each batch element. Subclasses define only how
-    candidate actions are drawn.
+    :meth:`plan` reads as four stages: expand each real state of the batch ``[*B]`` into
+    ``[*B, m]`` candidates, roll them ``h`` steps in the learned env drawing each step's
+    actions from :meth:`sample_candidate_actions`, score them with :meth:`score_candidates`
+    (discounted sum of predicted rewards, plus the discounted terminal value when a
+    ``value_module`` is given) and select the best candidate of each batch element, whose first
+    action is written. Subclasses define how candidate actions are drawn; scoring is a
+    replaceable hook too. Candidate sampling runs under ``torch.no_grad()`` and
+    ``ExplorationType.RANDOM`` whatever the caller's mode.
 
     With a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` the rollout is a plain tensor loop
-    over :meth:`~torchrl_mbmf.envs.LearnedDynamicsEnv.predict` (no tensordict per step, no spec
-    checks, no autograd); any other
-    :class:`~torchrl.envs.model_based.ModelBasedEnvBase` goes through ``env.rollout``. Both
-    draw the same random numbers in the same order, so they choose the same action
+    over the model's cached fused step (:class:`CachedModelStep`: no tensordict per step, no
+    spec checks, no autograd, pre-packed oneDNN weights on CPU); any
+    other :class:`~torchrl.envs.model_based.ModelBasedEnvBase` goes through ``env.rollout``.
+    Both draw the same random numbers in the same order, so they choose the same action
     (``planner.fast_path = False`` forces the generic path).
 
     When an ``actor`` is given, the planner also writes the actor's distribution parameters
@@ -84,14 +152,16 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
     under them (``log_prob_key``), so the collected transitions feed PPO's loss.
 
     Args:
-        env: the learned env (``batch_locked=False``).
+        env: the learned env (``batch_locked=False``) with a bounded continuous action spec.
 
     Keyword Args:
         num_candidates: candidate trajectories ``m``. Defaults to ``15``.
         horizon: imagined steps ``h``. Defaults to ``10``.
-        actor: stochastic actor whose log-prob of the chosen action is written. Defaults to none.
-        value_module: TensorDict module writing ``value_key`` from the observation; its value
-            at the last imagined state is added to the score. Defaults to none (thesis).
+        actor: stochastic actor whose log-prob of the chosen action is written. Defaults to
+            ``None``.
+        value_module: TensorDict module writing ``value_key`` from the learned env's
+            observation entries; its value at the last imagined state is added to the score.
+            Defaults to ``None`` (thesis).
         value_key: output key of ``value_module``. Defaults to ``"state_value"``.
         discount: discount of the score. Defaults to ``1.0`` (the thesis' plain sum).
         action_key: action key. Defaults to ``"action"``.
@@ -105,7 +175,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
         >>> from torchrl_mbmf.modules.planners import ShootingPlanner
         >>> class ZeroPlanner(ShootingPlanner):  # candidate sampling is the replaceable piece
-        ...     def sample_actions(self, observation, step):
+        ...     def sample_candidate_actions(self, observation, step):
         ...         return observation.new_zeros(*observation.shape[:-1], self.action_dim)
         >>> real = make_gym_state_env("Pendulum-v1", seed=0)
         >>> env = LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real)
@@ -127,9 +197,13 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         log_prob_key: NestedKey = "action_log_prob",
         stats_key: NestedKey | None = "planner",
     ) -> None:
-        if not isinstance(num_candidates, int) or num_candidates < 1:
+        if isinstance(num_candidates, bool) or not isinstance(num_candidates, int):
+            raise TypeError(f"num_candidates must be an int, got {num_candidates!r}")
+        if num_candidates < 1:
             raise ValueError(f"num_candidates must be an integer >= 1, got {num_candidates!r}")
-        if not isinstance(horizon, int) or horizon < 1:
+        if isinstance(horizon, bool) or not isinstance(horizon, int):
+            raise TypeError(f"horizon must be an int, got {horizon!r}")
+        if horizon < 1:
             raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
         if not 0.0 < discount <= 1.0:
             raise ValueError(f"discount must be in (0, 1], got {discount}")
@@ -142,12 +216,19 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         self.log_prob_key = log_prob_key
         self.stats_key = stats_key
         spec = env.full_action_spec_unbatched[action_key]
+        if not isinstance(spec, Bounded) or spec.domain != "continuous":
+            raise ValueError(
+                f"the env's {action_key!r} spec must be bounded and continuous (a torchrl "
+                f"Bounded spec), got {type(spec).__name__}"
+            )
+        low, high = spec.space.low, spec.space.high
         self.action_dim = int(spec.shape[-1])
-        self.register_buffer("action_low", spec.space.low.clone(), persistent=False)
-        self.register_buffer("action_high", spec.space.high.clone(), persistent=False)
+        self.register_buffer("action_low", low.clone(), persistent=False)
+        self.register_buffer("action_high", high.clone(), persistent=False)
         from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 
         self.fast_path = isinstance(env, LearnedDynamicsEnv)
+        self._model_step = CachedModelStep(env.dynamics) if self.fast_path else None
         self.state_key: NestedKey = env.state_key if self.fast_path else self.in_keys[0]
         self.actor = actor
         self.sampler: ActorSampler | None = None
@@ -171,7 +252,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             )
         obs = spec[obs_key].zero()
         try:
-            with torch.no_grad():
+            with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
                 action = self.sampler.sample(obs.unsqueeze(0))
         except RuntimeError as err:
             raise ValueError(
@@ -183,86 +264,92 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
                 f"has size {self.action_dim}"
             )
 
-    # ----------------------------------------------------------------- stages
+    # ------------------------------------------------------------------- hooks
     @abc.abstractmethod
-    def sample_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
+    def sample_candidate_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
         """Candidate actions ``[*B, m, action_dim]`` for imagined ``step`` (0-based).
 
         Args:
-            observation: the candidates' current observations ``[*B, m, obs_dim]``.
+            observation: the candidates' current policy observations ``[*B, m, obs_dim]``
+                (the state when the learned env has no separate observation).
             step: the imagined step.
         """
 
-    def observation_of(self, state: torch.Tensor) -> torch.Tensor:
-        """What the actor and value module read at an imagined state."""
-        if self.fast_path:
-            obs = self.env.observation(state)
-            return state if obs is None else obs
-        return state
+    def score_candidates(self, rewards: torch.Tensor, final: TensorDictBase) -> torch.Tensor:
+        """Candidate scores ``[*B, m]``: discounted return plus the optional terminal value.
 
-    def terminal_value(self, observation: torch.Tensor) -> torch.Tensor:
-        """Value ``[*B, m]`` of the last imagined observation (0 without a value module)."""
-        if self.value_module is None:
-            return observation.new_zeros(observation.shape[:-1])
-        key = self.value_module.in_keys[0]
-        td = TensorDict({key: observation}, batch_size=observation.shape[:-1])
-        return self.value_module(td).get(self.value_key)[..., 0]
-
-    def score(self, rewards: torch.Tensor, final_observation: torch.Tensor) -> torch.Tensor:
-        """Candidate scores ``[*B, m]`` from imagined rewards ``[*B, m, h]``.
-
-        ``sum_t discount**t * r_t + discount**h * V(s_h)``.
+        Args:
+            rewards: imagined rewards ``[*B, m, h]``.
+            final: the learned env's observation entries at the last imagined state,
+                batch ``[*B, m]``.
         """
-        h = rewards.shape[-1]
-        weights = self.discount ** torch.arange(h, dtype=rewards.dtype, device=rewards.device)
-        total = (rewards * weights).sum(-1)
-        if self.value_module is not None:
-            total = total + self.discount**h * self.terminal_value(final_observation)
-        return total
+        value = self.terminal_value(final) if self.value_module is not None else None
+        return discounted_return(rewards, self.discount, value)
 
-    # --------------------------------------------------------------- rollouts
-    def _rollout_fast(self, state: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        predict = self.env.fast_predictor()
-        s = state.unsqueeze(-2).expand(*state.shape[:-1], self.num_candidates, state.shape[-1])
-        rewards = []
+    def terminal_value(self, final: TensorDictBase) -> torch.Tensor:
+        """``value_module``'s value ``[*B, m]`` at the last imagined state."""
+        return self.value_module(final.copy()).get(self.value_key)[..., 0]
+
+    # ---------------------------------------------------------------- rollouts
+    def observation_of(self, state: torch.Tensor) -> torch.Tensor:
+        """What the actor reads at an imagined state (fast path)."""
+        obs = self.env.observation(state)
+        return state if obs is None else obs
+
+    def _final_entries(self, state: torch.Tensor) -> TensorDictBase:
+        entries = {self.state_key: state}
+        if self.env.observation_key is not None:
+            entries[self.env.observation_key] = self.env.observation(state)
+        return TensorDict(entries, batch_size=state.shape[:-1])
+
+    def _rollout_fast(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, TensorDict]:
+        predict = self._model_step()
+        s = expand_candidates(state, self.num_candidates)
+        rewards = s.new_empty(*s.shape[:-1], self.horizon)
         first = None
         for t in range(self.horizon):
-            a = self.sample_actions(self.observation_of(s), t)
+            a = self.sample_candidate_actions(self.observation_of(s), t)
             if first is None:
                 first = a
             s, r = predict(s, a)
-            rewards.append(r[..., 0])
-        return first, torch.stack(rewards, -1), self.observation_of(s)
+            rewards[..., t] = r[..., 0]
+        return first, rewards, self._final_entries(s)
 
-    def _rollout_generic(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, ...]:
+    def _rollout_generic(
+        self, tensordict: TensorDictBase
+    ) -> tuple[torch.Tensor, torch.Tensor, TensorDictBase]:
         env = self.env
-        batch = (*tensordict.batch_size, self.num_candidates)
-        start = tensordict.select(*self.in_keys).unsqueeze(-1).expand(batch).clone()
-        obs_key = self.sampler.observation_key if self.sampler is not None else self.state_key
+        start = tensordict.select(*self.in_keys).unsqueeze(-1)
+        start = start.expand(*tensordict.batch_size, self.num_candidates).clone()
+        if self.sampler is not None:
+            obs_key = self.sampler.observation_key
+        else:
+            obs_key = getattr(env, "observation_key", None) or self.state_key
         planner = self
 
-        class _Sampler:
-            t = 0
+        class _CandidateSampler:
+            step = 0
 
             def __call__(self, td: TensorDictBase) -> TensorDictBase:
-                td.set(planner.action_key, planner.sample_actions(td.get(obs_key), self.t))
-                self.t += 1
+                actions = planner.sample_candidate_actions(td.get(obs_key), self.step)
+                td.set(planner.action_key, actions)
+                self.step += 1
                 return td
 
         rollout = env.rollout(
             self.horizon,
-            policy=_Sampler(),
+            policy=_CandidateSampler(),
             tensordict=env.reset(start),
             auto_reset=False,
             break_when_any_done=False,
         )
         first = rollout.get(self.action_key)[..., 0, :]
         rewards = rollout.get(("next", "reward"))[..., 0]
-        final = rollout.get(("next", obs_key))[..., -1, :]
+        final = rollout.get("next")[..., -1].select(*self.in_keys)
         return first, rewards, final
 
     def plan(self, tensordict: TensorDictBase) -> Plan:
-        """Rolls out and scores the candidates of every batch element of ``tensordict``.
+        """Expands, rolls out, scores and selects the candidates of every batch element.
 
         Args:
             tensordict: real states, batch ``[*B]``.
@@ -270,12 +357,12 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         Returns:
             The :class:`Plan`.
         """
-        with torch.no_grad():
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             if self.fast_path:
                 first, rewards, final = self._rollout_fast(tensordict.get(self.state_key))
             else:
                 first, rewards, final = self._rollout_generic(tensordict)
-            returns = self.score(rewards, final)
+            returns = self.score_candidates(rewards, final)
             return Plan(first, returns, select_best(returns))
 
     def planning(self, td: TensorDictBase) -> torch.Tensor:
@@ -288,11 +375,17 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         tensordict_out: TensorDictBase | None = None,
         **kwargs: object,
     ) -> TensorDictBase:
-        """Plans from each real state and writes the chosen action (and log-prob, stats)."""
+        """Plans from each real state and writes the chosen action (and log-prob, stats).
+
+        Args:
+            tensordict: the real env's tensordict, batch ``[*B]``; its entries are not changed.
+            tensordict_out: where to write. Defaults to ``tensordict``.
+        """
         if kwargs:
             raise TypeError(f"unexpected arguments {sorted(kwargs)}")
         plan = self.plan(tensordict)
-        action = self.action_spec.project(plan.action) if self.action_spec.shape else plan.action
+        # the spec's projection for a bounded box, without its per-call membership check
+        action = torch.maximum(torch.minimum(plan.action, self.action_high), self.action_low)
         out = tensordict if tensordict_out is None else tensordict_out
         out.set(self.action_key, action)
         if self.sampler is not None:
@@ -303,6 +396,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
                 out.set(key, lp[key])
             out.set(self.log_prob_key, lp["log_prob"])
         if self.stats_key is not None:
-            out.set((self.stats_key, "best_return"), plan.returns.max(-1).values.unsqueeze(-1))
-            out.set((self.stats_key, "mean_return"), plan.returns.mean(-1).unsqueeze(-1))
+            out.set((self.stats_key, "best_return"), plan.returns.amax(-1, keepdim=True))
+            out.set((self.stats_key, "mean_return"), plan.returns.mean(-1, keepdim=True))
         return out

@@ -87,6 +87,6 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             stats_key=stats_key,
         )
 
-    def sample_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
+    def sample_candidate_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
         """Actions sampled from the actor at each candidate's observation."""
         return self.sampler.sample(observation)

@@ -45,7 +45,7 @@ class RandomShootingMPCPlanner(ShootingPlanner):
         (torch.Size([3, 1]), True)
     """
 
-    def sample_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
+    def sample_candidate_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
         """Uniform actions in the spec's bounds, ``[*B, m, action_dim]``."""
         shape = (*observation.shape[:-1], self.action_dim)
         u = torch.rand(shape, dtype=self.action_low.dtype, device=observation.device)

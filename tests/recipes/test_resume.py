@@ -1,0 +1,103 @@
+"""A run killed with SIGKILL and resumed ends exactly like an uninterrupted run."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+TRAIN = str(ROOT / "recipes" / "train.py")
+# One torch thread per run: two OpenMP threads per process on a shared 2-vCPU machine slow the
+# tiny networks down several times.
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+TINY = [
+    "env=pendulum",
+    "total_steps=1600",
+    "ppo.frames_per_batch=160",
+    "planning_updates=2",
+    "world_model.random_steps=300",
+    "world_model.max_epochs=2",
+    "world_model.hidden_sizes=[32,32]",
+    "world_model.refit_every=1",
+    "sac.frames_per_batch=100",
+    "sac.init_random_frames=200",
+    "sac.batch_size=32",
+    "sac.hidden_sizes=[32,32]",
+    "sac.refit_every_steps=300",
+    "eval_every=800",
+    "checkpoint.every_steps=400",
+    "progress=false",
+]
+
+
+def _run(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, TRAIN, *overrides, f"run_dir={run_dir}"],
+        cwd=run_dir.parent,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=ENV,
+    )
+
+
+def _kill_after_first_checkpoint(run_dir: Path, *overrides: str) -> None:
+    killed = subprocess.Popen(
+        [sys.executable, TRAIN, *overrides, f"run_dir={run_dir}"],
+        cwd=run_dir.parent,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=ENV,
+    )
+    deadline = time.time() + 300
+    checkpoints = run_dir / "checkpoints"
+    while time.time() < deadline and killed.poll() is None:
+        if checkpoints.exists() and any(checkpoints.glob("checkpoint-*")):
+            break
+        time.sleep(0.05)
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    assert not (run_dir / "summary.json").exists(), "the run finished before it could be killed"
+
+
+@pytest.mark.parametrize(
+    "method", ["ppo", "ppo_mpc", pytest.param("sac_mpc", marks=pytest.mark.slow)]
+)
+def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, method):
+    cfg = [f"method={method}", *TINY]
+    straight = tmp_path / "straight"
+    proc = _run(straight, *cfg)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run = tmp_path / "resumed"
+    _kill_after_first_checkpoint(run, *cfg)
+    done = _run(run, *cfg)
+    assert done.returncode == 0, done.stderr[-3000:]
+    resumed = json.loads((run / "summary.json").read_text())
+    reference = json.loads((straight / "summary.json").read_text())
+    assert resumed["resumed"] is True and reference["resumed"] is False
+    for key in ("real_steps", "random_steps", "updates", "episodes", "params_sha256"):
+        assert resumed[key] == reference[key], key
+    assert resumed["final_eval_return"] == pytest.approx(reference["final_eval_return"])
+    # at most keep_last (2) checkpoints are kept
+    assert len(list((run / "checkpoints").glob("checkpoint-*"))) <= 2
+
+
+def test_incompatible_checkpoint_names_the_key(tmp_path):
+    run = tmp_path / "run"
+    cfg = ["method=ppo", *TINY, "total_steps=400", "checkpoint.every_steps=160"]
+    assert _run(run, *cfg).returncode == 0
+    for override, key in (
+        ("method=sac", "method"),
+        ("ppo.hidden_sizes=[16,16]", "ppo.hidden_sizes"),
+        ("seed=3", "seed"),
+    ):
+        proc = _run(run, *cfg, override)
+        assert proc.returncode != 0
+        assert f"was written with {key}=" in proc.stderr, proc.stderr[-2000:]

@@ -1,0 +1,135 @@
+"""A cached, inference-only step of the world model for planning loops."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import nn
+
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+
+Step = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+def _packed_linear_available(weight: torch.Tensor) -> bool:
+    return (
+        weight.device.type == "cpu"
+        and weight.dtype == torch.float32
+        and torch.backends.mkldnn.is_available()
+        and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+        and hasattr(torch.ops.mkldnn, "_reorder_linear_weight")
+    )
+
+
+def _layer_fn(
+    weight: torch.Tensor, bias: torch.Tensor, activation: nn.Module | None, pack: bool
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    weight, bias = weight.detach().contiguous(), bias.detach().contiguous()
+    if pack and _packed_linear_available(weight):
+        packed = torch.ops.mkldnn._reorder_linear_weight(weight, None)
+        fused = "relu" if type(activation) is nn.ReLU else "none"
+        rest = None if fused == "relu" else activation
+
+        def packed_layer(x: torch.Tensor) -> torch.Tensor:
+            y = torch.ops.mkldnn._linear_pointwise(x, packed, bias, fused, [], "")
+            return y if rest is None else rest(y)
+
+        return packed_layer
+
+    def layer(x: torch.Tensor) -> torch.Tensor:
+        y = nn.functional.linear(x, weight, bias)
+        return y if activation is None else activation(y)
+
+    return layer
+
+
+class CachedModelStep:
+    """``step(state, action) -> (next_state, reward)`` of a :class:`DeltaDynamicsModel`, cached.
+
+    Equal to the model's ``forward`` up to float rounding, for planning under ``no_grad``: the
+    input and output scaling are folded into the first and last layers, and on CPU (float32)
+    the large hidden layers run as oneDNN linear layers with pre-packed weights and a fused
+    ReLU (about 2-3x faster than ``nn.functional.linear`` for the planner's 15-120 row
+    batches). Packing costs about 0.5 ms per layer, so the step is rebuilt only when a
+    parameter or buffer of the model changed (an optimiser step, a refit of the scaler, a
+    ``load_state_dict``), detected through the tensors' version counters. Models whose
+    ``net`` is not a ``Sequential`` of ``Linear`` layers and activations use the model's
+    own :meth:`~torchrl_mbmf.modules.DeltaDynamicsModel.fused_step`.
+
+    Args:
+        model: the world model.
+
+    Keyword Args:
+        min_packed_size: layers with at least this many weights are packed. Defaults to
+            ``65536`` (the 500x500 layer of the thesis model; small layers are faster plain).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+        >>> from torchrl_mbmf.modules.planners import CachedModelStep
+        >>> model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+        >>> step = CachedModelStep(model, min_packed_size=1)
+        >>> s, a = torch.randn(5, 3), torch.randn(5, 1)
+        >>> torch.allclose(step()(s, a)[0], model(s, a)[0], atol=1e-5)
+        True
+    """
+
+    def __init__(self, model: DeltaDynamicsModel, *, min_packed_size: int = 65536) -> None:
+        self.model = model
+        self.min_packed_size = int(min_packed_size)
+        self._key: tuple[tuple[int, int, int], ...] | None = None
+        self._step: Step | None = None
+
+    def __getstate__(self) -> dict[str, object]:
+        # the built step holds closures and packed weights: rebuild it after a copy or pickle
+        return {**self.__dict__, "_key": None, "_step": None}
+
+    def _version_key(self) -> tuple[tuple[int, int, int], ...]:
+        tensors = [*self.model.parameters(), *self.model.buffers()]
+        return tuple((t.data_ptr(), t._version, t.device.index or 0) for t in tensors)
+
+    def __call__(self) -> Step:
+        """The step for the model's current weights (rebuilt only after they changed)."""
+        key = self._version_key()
+        if self._step is None or key != self._key:
+            self._step = self._build()
+            self._key = key
+        return self._step
+
+    @torch.no_grad()
+    def _build(self) -> Step:
+        model = self.model
+        layers = list(model.net)
+        linears = layers[0::2]
+        activations = [*layers[1::2], None]
+        if (
+            not isinstance(model.net, nn.Sequential)
+            or len(layers) % 2 != 1
+            or not all(isinstance(m, nn.Linear) for m in linears)
+            or any(isinstance(m, nn.Linear) for m in layers[1::2])
+        ):
+            return model.fused_step()
+        weights = [m.weight for m in linears]
+        biases = [m.bias for m in linears]
+        in_loc = torch.cat([model.state_loc, model.action_loc])
+        in_scale = torch.cat([model.state_scale, model.action_scale])
+        weights[0] = weights[0] / in_scale
+        biases[0] = biases[0] - weights[0] @ in_loc
+        out_loc = torch.cat([model.delta_loc, model.reward_loc])
+        out_scale = torch.cat([model.delta_scale, model.reward_scale])
+        weights[-1] = weights[-1] * out_scale[:, None]
+        biases[-1] = biases[-1] * out_scale + out_loc
+        fns = [
+            _layer_fn(w, b, act, w.numel() >= self.min_packed_size)
+            for w, b, act in zip(weights, biases, activations, strict=True)
+        ]
+        low, high, d = model.action_low, model.action_high, model.state_dim
+
+        def step(state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            x = torch.cat([state, action.clamp(low, high)], -1)
+            for fn in fns:
+                x = fn(x)
+            return state + x[..., :d], x[..., d:]
+
+        return step
