@@ -21,6 +21,8 @@ log = logging.getLogger("fit_world_model")
 
 @hydra.main(config_path="../configs", config_name="fit_world_model", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    # torchrl logs each replay storage's creation at INFO on stdout; keep the output readable.
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     summary = run_fit_world_model(cfg, out_dir)
     log.info(

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -135,6 +136,16 @@ def test_corrupt_or_truncated_files_raise(tmp_path):
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(CorruptDatasetError):
         TransitionDataset.load(tmp_path / "ds2")
+    del meta["sha256"]
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(CorruptDatasetError, match="sha256"):
+        TransitionDataset.load(tmp_path / "ds2")
+    # a save interrupted before the rename leaves only a hidden temporary folder
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "ds2"]
+    shutil.rmtree(tmp_path / "ds2" / "buffer")
+    meta_path.write_text(json.dumps({**meta, "sha256": "0" * 64}))
+    with pytest.raises(CorruptDatasetError, match="cannot read the buffer"):
+        TransitionDataset.load(tmp_path / "ds2")
     with pytest.raises(FileNotFoundError):
         TransitionDataset.load(tmp_path / "missing")
 
@@ -155,3 +166,36 @@ def test_bad_input():
         data.tensors()
     with pytest.raises(ValueError, match="num_steps"):
         collect_random_transitions(make_gym_state_env("Pendulum-v1"), 0)
+
+
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_extend_from_collector_keeps_episodes(num_envs):
+    from torchrl.collectors import Collector
+
+    env = make_env("Pendulum-v1", num_envs=num_envs, seed=0)
+    collector = Collector(env, None, frames_per_batch=150 * num_envs, total_frames=450 * num_envs)
+    data = TransitionDataset(env_metadata(env))
+    for batch in collector:
+        assert batch.batch_size == ((150,) if num_envs == 1 else (num_envs, 150))
+        data.extend(batch)
+    collector.shutdown()
+    assert len(data) == 450 * num_envs
+    td = data.tensors()
+    lengths = []
+    for idx in data.trajectories():
+        torch.testing.assert_close(td["next", "state"][idx[:-1]], td["state"][idx[1:]])
+        lengths.append(idx.numel())
+    # 200-step Pendulum episodes continue across collector batches
+    assert sorted(lengths) == sorted([200, 200, 50] * num_envs)
+
+
+def test_interrupted_save_leaves_nothing(tmp_path, monkeypatch):
+    data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 20, seed=0)
+
+    def crash(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("torchrl_mbmf.data.transitions.os.replace", crash)
+    with pytest.raises(OSError, match="disk full"):
+        data.save(tmp_path / "ds")
+    assert list(tmp_path.iterdir()) == []

@@ -88,16 +88,3 @@ def test_refuses_nan_and_bad_settings():
         fit_dynamics(model, good[:2])
     with pytest.raises(ValueError, match="max_epochs"):
         fit_dynamics(model, good, max_epochs=0)
-
-
-def test_loss_keys_configurable():
-    model = DeltaDynamicsModel(4, 2, hidden_sizes=(8,))
-    loss = DynamicsLoss(model)
-    loss.set_keys(state="s", next_state=("next", "s"))
-    data = _linear_system(10)
-    data.rename_key_("state", "s")
-    data.rename_key_(("next", "state"), ("next", "s"))
-    out = loss(data)
-    assert out["loss_dynamics"].requires_grad
-    with pytest.raises(ValueError, match="not an accepted"):
-        loss.set_keys(bogus="x")

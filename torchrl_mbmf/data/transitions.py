@@ -195,7 +195,18 @@ class TransitionDataset:
         return self.buffer.storage[: len(self)]
 
     def trajectories(self) -> list[torch.Tensor]:
-        """Row indices of each episode, in time order (for open-loop multi-step evaluation)."""
+        """Row indices of each episode, in time order (for open-loop multi-step evaluation).
+
+        Returns:
+            One index tensor per episode (episodes cut by a collector batch are joined).
+
+        Examples:
+            >>> from torchrl_mbmf.data import collect_random_transitions
+            >>> from torchrl_mbmf.envs import make_gym_state_env
+            >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 250, seed=0)
+            >>> [len(idx) for idx in data.trajectories()]  # Pendulum episodes last 200 steps
+            [200, 50]
+        """
         ids = self.tensors().get(TRAJ_KEY)
         order = torch.sort(ids, stable=True).indices
         counts = torch.unique_consecutive(ids[order], return_counts=True)[1]
@@ -206,7 +217,7 @@ class TransitionDataset:
         if len(self):
             data = self.tensors()
             for key in self.keys:
-                digest.update(data.get(key).contiguous().numpy().tobytes())
+                digest.update(data.get(key).contiguous().numpy().reshape(-1).view("uint8"))
         return digest.hexdigest()
 
     def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
@@ -223,6 +234,19 @@ class TransitionDataset:
 
         Raises:
             FileExistsError: if ``path`` exists and ``overwrite`` is ``False``.
+
+        Examples:
+            >>> import tempfile
+            >>> from pathlib import Path
+            >>> from torchrl_mbmf.data import TransitionDataset, collect_random_transitions
+            >>> from torchrl_mbmf.envs import env_metadata, make_gym_state_env
+            >>> env = make_gym_state_env("Pendulum-v1")
+            >>> data = collect_random_transitions(env, 30, seed=0)
+            >>> with tempfile.TemporaryDirectory() as d:
+            ...     path = data.save(Path(d) / "random")
+            ...     loaded = TransitionDataset.load(path, expect=env_metadata(env))
+            >>> len(loaded), loaded.metadata["env_id"]
+            (30, 'Pendulum-v1')
         """
         path = Path(path)
         if path.exists() and not overwrite:
@@ -315,6 +339,10 @@ class TransitionDataset:
             raise CorruptDatasetError(
                 f"{path} has format {meta.get('format')!r}, expected {_FORMAT!r}"
             )
+        required = ("num_transitions", "sha256", "keys", "next_traj", "open_traj")
+        missing = [k for k in required if k not in meta]
+        if missing:
+            raise CorruptDatasetError(f"{meta_file} lacks the entries {missing}")
         for key, value in (expect or {}).items():
             if meta.get(key) != value:
                 raise DatasetMismatchError(

@@ -70,6 +70,70 @@ class DynamicsLoss(LossModule):
         """Keys written by :meth:`forward`."""
         return ["loss_dynamics", "loss_delta", "loss_reward"]
 
+    def scaled_pairs(
+        self,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        next_state: torch.Tensor,
+        reward: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Network inputs ``[..., state_dim + action_dim]`` and targets ``[..., state_dim + 1]``.
+
+        Both in the model's scaled units, with its current scaler. A fit whose scaler stays
+        fixed scales the data once with this and trains with :meth:`scaled_loss` on index
+        slices of the result, instead of rescaling every minibatch.
+
+        Args:
+            state: states ``[..., state_dim]``.
+            action: actions ``[..., action_dim]`` (clipped to the model's bounds).
+            next_state: real next states ``[..., state_dim]``.
+            reward: real rewards ``[...]`` or ``[..., 1]``.
+
+        Returns:
+            ``(inputs, targets)``; ``world_model.net(inputs)`` equals
+            ``world_model.predict_scaled(state, action)``.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+            >>> from torchrl_mbmf.objectives import DynamicsLoss
+            >>> loss = DynamicsLoss(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
+            >>> x, y = loss.scaled_pairs(torch.zeros(5, 3), torch.zeros(5, 1), torch.ones(5, 3),
+            ...                          torch.zeros(5))
+            >>> x.shape, y.shape
+            (torch.Size([5, 4]), torch.Size([5, 4]))
+        """
+        wm = self.world_model
+        wm._check(state, action)
+        inputs = torch.cat(
+            [
+                (state - wm.state_loc) / wm.state_scale,
+                (wm.clip_action(action) - wm.action_loc) / wm.action_scale,
+            ],
+            -1,
+        )
+        return inputs, wm.scale_targets(state, next_state, reward)
+
+    def scaled_loss(self, inputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """Eq. 17 on pre-scaled data from :meth:`scaled_pairs` (the mean over all outputs).
+
+        Args:
+            inputs: scaled network inputs.
+            targets: scaled targets.
+
+        Returns:
+            The scalar loss.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+            >>> from torchrl_mbmf.objectives import DynamicsLoss
+            >>> loss = DynamicsLoss(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
+            >>> loss.scaled_loss(torch.zeros(5, 4), torch.zeros(5, 4)).shape
+            torch.Size([])
+        """
+        return torch.nn.functional.mse_loss(self.world_model.net(inputs), targets)
+
     def squared_errors(
         self,
         state: torch.Tensor,
@@ -77,13 +141,39 @@ class DynamicsLoss(LossModule):
         next_state: torch.Tensor,
         reward: torch.Tensor,
     ) -> torch.Tensor:
-        """Per-output squared errors ``[..., state_dim + 1]`` in scaled units."""
+        """Per-output squared errors ``[..., state_dim + 1]`` in scaled units.
+
+        Args:
+            state: states ``[..., state_dim]``.
+            action: actions ``[..., action_dim]``.
+            next_state: real next states ``[..., state_dim]``.
+            reward: real rewards ``[...]`` or ``[..., 1]``.
+
+        Returns:
+            The squared errors, scaled delta first and scaled reward last.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+            >>> from torchrl_mbmf.objectives import DynamicsLoss
+            >>> loss = DynamicsLoss(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
+            >>> loss.squared_errors(torch.zeros(5, 3), torch.zeros(5, 1), torch.ones(5, 3),
+            ...                     torch.zeros(5)).shape
+            torch.Size([5, 4])
+        """
         prediction = self.world_model.predict_scaled(state, action)
         target = self.world_model.scale_targets(state, next_state, reward)
         return (prediction - target).pow(2)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Computes the losses of a batch of transitions."""
+        """Computes the losses of a batch of transitions.
+
+        Args:
+            tensordict: transitions with the keys of :attr:`in_keys`.
+
+        Returns:
+            ``loss_dynamics`` (differentiable), ``loss_delta`` and ``loss_reward`` (detached).
+        """
         k = self.tensor_keys
         err = self.squared_errors(
             tensordict.get(k.state),

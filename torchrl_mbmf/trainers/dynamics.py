@@ -157,18 +157,23 @@ def fit_dynamics(
     perm = torch.randperm(n, generator=generator)
     val_idx, train_idx = perm[:n_val], perm[n_val:]
     tensors = [t.to(device) for t in (state, action, next_state, reward)]
-    train = [t[train_idx] for t in tensors]
-    val = [t[val_idx] for t in tensors]
     if fit_normalizer:
-        model.fit_normalizer(*train)
+        model.fit_normalizer(*(t[train_idx] for t in tensors))
     loss_module = DynamicsLoss(model)
+    # The scaler is fixed during the fit: scale everything once, then train on index slices.
+    with torch.no_grad():
+        inputs, targets = loss_module.scaled_pairs(*tensors)
+    del tensors
+    train_x, train_y = inputs[train_idx], targets[train_idx]
+    val_x, val_y = inputs[val_idx], targets[val_idx]
+    del inputs, targets
     if optimizer is None:
         optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     history = FitHistory(num_train=len(train_idx), num_val=n_val)
 
     def val_loss() -> float:
         with torch.no_grad():
-            return float(loss_module.squared_errors(*val).mean())
+            return float(loss_module.scaled_loss(val_x, val_y))
 
     best = val_loss()
     best_state = copy.deepcopy(model.state_dict())
@@ -178,19 +183,19 @@ def fit_dynamics(
     bar = tqdm(range(max_epochs), desc="world model", unit="epoch", disable=not progress)
     for epoch in bar:
         order = torch.randperm(n_train, generator=generator).to(device)
-        total, count = 0.0, 0
+        total = torch.zeros((), device=device)
         for i in range(0, n_train, batch_size):
             idx = order[i : i + batch_size]
-            loss = loss_module.squared_errors(*(t[idx] for t in train)).mean()
+            loss = loss_module.scaled_loss(train_x[idx], train_y[idx])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            total += float(loss.detach()) * idx.numel()
-            count += idx.numel()
-        history.train_loss.append(total / count)
+            total += loss.detach() * idx.numel()
+        train_loss = float(total) / n_train
+        history.train_loss.append(train_loss)
         current = val_loss()
         history.val_loss.append(current)
-        bar.set_postfix(train=f"{total / count:.4f}", val=f"{current:.4f}")
+        bar.set_postfix(train=f"{train_loss:.4f}", val=f"{current:.4f}")
         if current < best:
             best, bad_epochs, history.best_epoch = current, 0, epoch
             best_state = copy.deepcopy(model.state_dict())

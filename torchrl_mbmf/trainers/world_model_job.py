@@ -62,7 +62,7 @@ def plot_horizon_predictions(
     import matplotlib.pyplot as plt
 
     files = []
-    for quantity, label in (("x", "x position (m)"), ("reward", "reward")):
+    for quantity, label in (("x", "x position (m)"), ("reward", "reward per step")):
         fig, axes = plt.subplots(1, len(horizons), figsize=(4.2 * len(horizons), 3.4))
         axes = [axes] if len(horizons) == 1 else list(axes)
         for ax, h in zip(axes, horizons, strict=True):
@@ -155,7 +155,10 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
         data.save(out_dir / "dataset")
     # held-out episodes from another seed of the env
     eval_data = collect_random_transitions(
-        build(cfg.seed + 10_000), int(cfg.eval_steps), seed=cfg.seed + 10_000
+        build(cfg.seed + 10_000),
+        int(cfg.eval_steps),
+        seed=cfg.seed + 10_000,
+        progress=cfg.progress,
     )
     state_dim = env.full_observation_spec_unbatched[STATE_KEY].shape[-1]
     action_dim = env.full_action_spec_unbatched[env.action_key].shape[-1]

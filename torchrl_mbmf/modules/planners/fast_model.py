@@ -27,15 +27,19 @@ def _layer_fn(
 ) -> Callable[[torch.Tensor], torch.Tensor]:
     weight, bias = weight.detach().contiguous(), bias.detach().contiguous()
     if pack and _packed_linear_available(weight):
-        packed = torch.ops.mkldnn._reorder_linear_weight(weight, None)
         fused = "relu" if type(activation) is nn.ReLU else "none"
         rest = None if fused == "relu" else activation
+        try:  # private inductor ops: fall back to the plain layer if their API changed
+            packed = torch.ops.mkldnn._reorder_linear_weight(weight, None)
 
-        def packed_layer(x: torch.Tensor) -> torch.Tensor:
-            y = torch.ops.mkldnn._linear_pointwise(x, packed, bias, fused, [], "")
-            return y if rest is None else rest(y)
+            def packed_layer(x: torch.Tensor) -> torch.Tensor:
+                y = torch.ops.mkldnn._linear_pointwise(x, packed, bias, fused, [], "")
+                return y if rest is None else rest(y)
 
-        return packed_layer
+            packed_layer(weight.new_zeros(1, weight.shape[1]))
+            return packed_layer
+        except (RuntimeError, TypeError):
+            pass
 
     def layer(x: torch.Tensor) -> torch.Tensor:
         y = nn.functional.linear(x, weight, bias)
