@@ -34,15 +34,6 @@ def closed_form_env(real):
     return LearnedDynamicsEnv(model, real)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny nets run faster on one thread, and do not stall when the machine is shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def real():
     return make_half_cheetah_env(seed=0)

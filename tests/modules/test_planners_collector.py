@@ -21,15 +21,6 @@ from torchrl_mbmf.modules import (
 from torchrl_mbmf.trainers import fit_dynamics
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny nets run faster on one thread, and do not stall when the machine is shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _collect(env, policy, frames):
     collector = Collector(
         env,

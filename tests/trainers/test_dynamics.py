@@ -9,16 +9,6 @@ from torchrl_mbmf.objectives import DynamicsLoss
 from torchrl_mbmf.trainers import fit_dynamics
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Tiny networks gain nothing from 2 threads, and on a shared 2-core machine a 2-thread
-    # OpenMP region waits on whichever core another process holds (measured 0.2 s vs 9 s).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _linear_system(n=2000, seed=0):
     """s' = s + A s + B a, r = c.s - |a|^2: learnable by a small MLP."""
     g = torch.Generator().manual_seed(seed)
