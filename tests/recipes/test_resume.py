@@ -68,7 +68,7 @@ def _kill_after_first_checkpoint(run_dir: Path, *overrides: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "method", ["ppo", "ppo_mpc", pytest.param("sac_mpc", marks=pytest.mark.slow)]
+    "method", ["ppo", "ppo_mpc", "sac", pytest.param("sac_mpc", marks=pytest.mark.slow)]
 )
 def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, method):
     cfg = [f"method={method}", *TINY]

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import OmegaConf
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.checkpoint import (
     Checkpoint,
     CheckpointRotation,
@@ -84,6 +84,39 @@ class _DatasetAdapter(DumpLoadCheckpointAdapter):
 
     def load(self, component: Any, path: Path, **kwargs: Any) -> None:
         component.loads(path / "transitions")
+
+
+class _ReplayAdapter(DumpLoadCheckpointAdapter):
+    """Checkpoints a replay buffer's filled part only, with its write cursor.
+
+    A ``LazyTensorStorage`` is allocated at full capacity (1e6 transitions for SAC), and the
+    stock state dict writes all of it; this writes the ``len(buffer)`` filled rows as a
+    memory-mapped TensorDict and restores them at the same positions, so sampling after a
+    resume is identical.
+    """
+
+    adapter_id = "torchrl_mbmf.replay_filled"
+
+    def save(self, component: Any, path: Path, *, args: tuple, kwargs: dict) -> Any:
+        path.mkdir(parents=True, exist_ok=True)
+        filled = len(component)
+        if filled:
+            component.storage[:filled].memmap(path / "data")
+        state = {"filled": filled, "writer": component.writer.state_dict()}
+        (path / "replay.json").write_text(json.dumps(state))
+
+    def load(self, component: Any, path: Path, **kwargs: Any) -> None:
+        state = json.loads((path / "replay.json").read_text())
+        component.empty()
+        if state["filled"]:
+            data = TensorDict.load_memmap(path / "data")
+            if data.shape[0] != state["filled"]:
+                raise ValueError(
+                    f"replay checkpoint {path} holds {data.shape[0]} rows, "
+                    f"its record says {state['filled']}"
+                )
+            component.extend(data.clone())
+        component.writer.load_state_dict(state["writer"])
 
 
 def seed_everything(seed: int) -> None:
@@ -278,8 +311,6 @@ class Trainer:
             "rng": GlobalRNGState(),
             "progress": self.progress,
         }
-        if self.replay is not None:
-            components["replay"] = self.replay
         if self.model is not None:
             components["world_model"] = self.model
             components["model_optim"] = self.model_optim
@@ -288,6 +319,8 @@ class Trainer:
         checkpoint = Checkpoint(**components)
         if self.dataset is not None:
             checkpoint.register("dataset", self.dataset, adapter=_DatasetAdapter())
+        if self.replay is not None:
+            checkpoint.register("replay", self.replay, adapter=_ReplayAdapter())
         return checkpoint
 
     def _maybe_resume(self) -> bool:
