@@ -13,7 +13,6 @@ import logging
 from pathlib import Path
 
 import hydra
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from torchrl_mbmf.trainers import Trainer
@@ -23,7 +22,9 @@ log = logging.getLogger("train")
 
 @hydra.main(config_path="../configs", config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    summary = Trainer(cfg, Path(HydraConfig.get().runtime.output_dir)).train()
+    # cfg.run_dir and Hydra's output folder coincide unless run_dir is overridden; the run
+    # folder is always cfg.run_dir so that a restarted job finds its checkpoints.
+    summary = Trainer(cfg, Path(cfg.run_dir)).train()
     log.info("summary: %s", json.dumps(summary))
 
 

@@ -40,6 +40,7 @@ from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.planners import PolicyGuidedMPCPlanner, RandomShootingMPCPlanner
 from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_train_config
 from torchrl_mbmf.trainers.dynamics import fit_dynamics
+from torchrl_mbmf.trainers.export import save_policy
 from torchrl_mbmf.trainers.ppo import ppo_update
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
@@ -49,15 +50,22 @@ logger = logging.getLogger(__name__)
 def _fingerprint(cfg: Any) -> dict[str, Any]:
     """Config entries a checkpoint must agree on to be resumed."""
     algo = "ppo" if cfg.method in PPO_METHODS else "sac"
-    return {
+    fingerprint = {
         "method": cfg.method,
         "env.id": cfg.env.id,
         "env.num_envs": int(cfg.env.num_envs),
         "reward": OmegaConf.to_container(cfg.reward, resolve=True),
         "seed": int(cfg.seed),
         f"{algo}.hidden_sizes": list(cfg[algo].hidden_sizes),
-        "world_model.hidden_sizes": list(cfg.world_model.hidden_sizes),
+        f"{algo}.frames_per_batch": int(cfg[algo].frames_per_batch),
     }
+    if cfg.method in MODEL_BASED:
+        fingerprint["world_model.hidden_sizes"] = list(cfg.world_model.hidden_sizes)
+        fingerprint["world_model.random_steps"] = int(cfg.world_model.random_steps)
+        fingerprint["planner"] = OmegaConf.to_container(cfg.planner, resolve=True)
+    if cfg.method in ("mpc", "ppo_mpc"):
+        fingerprint["planning_updates"] = int(cfg.planning_updates)
+    return fingerprint
 
 
 def _git_commit() -> str:
@@ -187,7 +195,8 @@ class Trainer:
         self.ppo = cfg.method in PPO_METHODS
         self.model_based = cfg.method in MODEL_BASED
         seed_everything(int(cfg.seed))
-        torch.set_num_threads(max(1, torch.get_num_threads()))
+        if cfg.get("threads") is not None:
+            torch.set_num_threads(int(cfg.threads))
         self.env = self._make_env(int(cfg.seed))
         self.eval_env = self._make_env(int(cfg.seed) + 1000, num_envs=1)
         self.progress: dict[str, Any] = {
@@ -622,3 +631,4 @@ class Trainer:
         if latest is not None and latest.name.endswith(f"{step:012d}"):
             return
         self.rotation.save(self.checkpoint, step=step)
+        save_policy(self.actor, self.run_dir, step)
