@@ -31,7 +31,10 @@ def _swept_runs(preset: str) -> list[list[str]]:
     params = cfg.hydra.sweeper.params or {}
     keys = list(params)
     values = [str(params[k]).split(",") for k in keys]
-    return [[f"{k}={v}" for k, v in zip(keys, combo)] for combo in itertools.product(*values)]
+    return [
+        [f"{k}={v}" for k, v in zip(keys, combo, strict=True)]
+        for combo in itertools.product(*values)
+    ]
 
 
 @pytest.mark.parametrize("budget", ["thesis", "short"])
