@@ -1,3 +1,4 @@
+from torchrl_mbmf.analysis.experiments import analyze_experiments, collect_runs
 from torchrl_mbmf.analysis.gait import (
     GaitMetrics,
     frame_strip,
@@ -13,6 +14,19 @@ from torchrl_mbmf.analysis.horizon import (
     multistep_mse,
     open_loop_rollout,
 )
+from torchrl_mbmf.analysis.plots import plot_curves, plot_gait_comparison, save_image
+from torchrl_mbmf.analysis.report import write_report
+from torchrl_mbmf.analysis.runs import (
+    Curve,
+    Run,
+    aggregate_curve,
+    compare_intervals,
+    final_values,
+    group_runs,
+    interval_of,
+    load_runs,
+    ppo_maximum_table,
+)
 from torchrl_mbmf.analysis.stats import (
     Interval,
     bootstrap_ci,
@@ -23,21 +37,36 @@ from torchrl_mbmf.analysis.stats import (
 )
 
 __all__ = [
+    "Curve",
     "GaitMetrics",
     "HorizonError",
     "Interval",
+    "Run",
+    "aggregate_curve",
+    "analyze_experiments",
     "bootstrap_ci",
+    "collect_runs",
+    "compare_intervals",
+    "final_values",
     "first_step_reaching",
     "frame_strip",
     "gait_metrics",
+    "group_runs",
     "horizon_predictions",
     "horizon_table",
     "interpolate_curve",
+    "interval_of",
     "iqm",
+    "load_runs",
     "multistep_mse",
     "open_loop_rollout",
+    "plot_curves",
     "plot_gait",
+    "plot_gait_comparison",
+    "ppo_maximum_table",
     "record_gait",
     "render_states",
     "rolling_window_stats",
+    "save_image",
+    "write_report",
 ]

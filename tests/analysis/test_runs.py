@@ -1,0 +1,174 @@
+"""Run-folder analysis: curves over seeds, the PPO-maximum table, verdicts, report recipes."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from torchrl_mbmf.analysis.experiments import analyze_experiments
+from torchrl_mbmf.analysis.runs import aggregate_curve, load_runs, ppo_maximum_table
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def make_run(
+    root: Path,
+    method: str,
+    seed: int,
+    values: list[float],
+    *,
+    step: int = 1000,
+    reward: str = "default",
+    horizon: int = 10,
+    random_steps: int = 0,
+    total_steps: int | None = None,
+    spread: float = 10.0,
+) -> Path:
+    """A run folder whose last-10 mean return takes ``values`` at steps ``step, 2 step, ...``."""
+    name = f"Env__{method}__{reward}__h{horizon}__seed{seed}"
+    run = root / name
+    scalars = run / "logs" / "scalars" / "train"
+    scalars.mkdir(parents=True)
+    steps = [random_steps + step * (i + 1) for i in range(len(values))]
+    total = total_steps or steps[-1]
+    config = {
+        "method": method,
+        "seed": seed,
+        "reward": {"name": reward},
+        "planner": {"horizon": horizon},
+        "total_steps": total,
+        "planning_updates": 1000,
+        "world_model": {"random_steps": random_steps},
+        "ppo": {"frames_per_batch": 1000},
+    }
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+
+    def write(name: str, vals) -> None:
+        rows = "".join(f"{s},{v}\n" for s, v in zip(steps, vals, strict=True))
+        (scalars / f"{name}.csv").write_text(rows)
+
+    write("return_last10_mean", values)
+    write("return_last10_min", [v - spread for v in values])
+    write("return_last10_max", [v + spread for v in values])
+    write("episode_return", values)
+    write("policy_log_std", [-0.01 * i for i in range(len(values))])
+    if steps[-1] >= total:
+        summary = {"real_steps": steps[-1], "random_steps": random_steps}
+        (run / "summary.json").write_text(json.dumps(summary))
+    return run
+
+
+def test_aggregate_curve_iqm_interval_and_band(tmp_path):
+    for seed, level in enumerate([0.0, 1.0, 2.0, 100.0]):
+        make_run(tmp_path, "ppo", seed, [level, level])
+    curve = aggregate_curve(load_runs(tmp_path), grid=[1000, 2000])
+    # IQM of {0, 1, 2, 100}: the middle two.
+    np.testing.assert_allclose(curve.iqm, [1.5, 1.5])
+    assert np.all(curve.low <= curve.iqm) and np.all(curve.iqm <= curve.high)
+    np.testing.assert_allclose(curve.band_min, [-10.0, -10.0])
+    np.testing.assert_allclose(curve.band_max, [110.0, 110.0])
+
+
+def test_interrupted_seed_stops_contributing_after_its_last_step(tmp_path):
+    make_run(tmp_path, "ppo", 0, [1.0, 1.0, 1.0])
+    make_run(tmp_path, "ppo", 1, [5.0], total_steps=3000)
+    runs = load_runs(tmp_path)
+    assert [r.complete for r in runs] == [True, False]
+    assert runs[1].last_step == 1000
+    curve = aggregate_curve(runs, grid=[1000, 3000])
+    np.testing.assert_allclose(curve.iqm, [3.0, 1.0])
+    np.testing.assert_allclose(curve.per_seed[1], [5.0, np.nan])
+
+
+def test_ppo_maximum_table_with_and_without_random_steps(tmp_path):
+    # PPO peaks at 40 at step 4000; PPO-MPC (500 random steps first) passes 40 at 500 + 2000.
+    make_run(tmp_path, "ppo", 0, [10.0, 20.0, 30.0, 40.0])
+    make_run(tmp_path, "ppo_mpc", 0, [20.0, 45.0, 50.0], random_steps=500)
+    runs = load_runs(tmp_path)
+    groups = {r.method: [r] for r in runs}
+    table = ppo_maximum_table(groups, "ppo", budget=4000, points=8)
+    rows = {r["label"]: r for r in table["rows"]}
+    assert table["threshold"] == 40.0
+    assert rows["ppo"]["step"] == 4000
+    assert rows["ppo_mpc"]["step"] == 2500 and rows["ppo_mpc"]["ratio"] == 2500 / 4000
+    table = ppo_maximum_table(groups, "ppo", budget=4000, exclude_random=True, points=8)
+    rows = {r["label"]: r for r in table["rows"]}
+    assert rows["ppo_mpc"]["step"] == 2000 and rows["ppo_mpc"]["ratio"] == 0.5
+    with pytest.raises(KeyError, match="sac"):
+        ppo_maximum_table(groups, "sac")
+
+
+@pytest.mark.parametrize("better", [True, False])
+def test_verdicts_follow_the_intervals(tmp_path, better):
+    runs = tmp_path / "runs"
+    good, bad = np.linspace(0, 100, 8), np.linspace(0, 40, 8)
+    for seed in range(3):
+        jitter = seed * 1.0
+        make_run(runs, "ppo", seed, list(bad + jitter))
+        make_run(runs, "mpc", seed, list(bad / 2 + jitter), random_steps=0)
+        make_run(runs, "ppo_mpc", seed, list((good if better else bad / 4) + jitter))
+        make_run(runs, "sac", seed, list(bad + jitter))
+        make_run(runs, "sac_mpc", seed, list((good if better else bad / 4) + jitter))
+    out = tmp_path / "out"
+    analysis = analyze_experiments([runs], out, gait=False)
+    verdicts = {q: v["verdict"] for q, v in analysis["verdicts"].items()}
+    expected = "supported" if better else "not supported"
+    assert verdicts["Q1"] == verdicts["Q2"] == verdicts["Q4"] == expected
+    assert verdicts["Q3"] == "not run"  # no HeadPen / ShinPen runs
+    assert analysis["exp2"]["common_step"] == 8000
+    assert (out / "exp2_default_planning.png").exists() and (out / "exp4_sac.png").exists()
+    assert (out / "exp3_log_std.png").exists()
+    assert json.loads((out / "analysis.json").read_text())["verdicts"]["Q1"]["verdict"] == expected
+    copied = sorted(p.name for p in (out / "runs" / "Env__ppo__default__h10__seed0").rglob("*"))
+    assert "config.yaml" in copied and "return_last10_mean.csv" in copied
+
+
+def test_analyze_and_report_recipes(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(2):
+        make_run(runs, "ppo", seed, [1.0, 2.0, 3.0 + seed])
+        make_run(runs, "ppo_mpc", seed, [2.0, 4.0, 6.0 + seed], random_steps=100)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+    def recipe(name: str, *overrides: str) -> None:
+        proc = subprocess.run(
+            [sys.executable, str(ROOT / "recipes" / f"{name}.py"), *overrides],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env=env,
+        )
+        assert proc.returncode == 0, proc.stderr[-3000:]
+
+    recipe("analyze", f"runs=[{runs}]", f"out_dir={tmp_path / 'short'}", "world_models=[]")
+    notes = tmp_path / "NOTES.md"
+    notes.write_text("Our discussion.")
+    recipe(
+        "report",
+        f"analyses=[{tmp_path / 'short'}]",
+        f"out={tmp_path / 'REPORT.md'}",
+        f"notes={notes}",
+    )
+    report = (tmp_path / "REPORT.md").read_text()
+    assert "Our discussion." in report and "## Budget `short`" in report
+    assert "| Q1 |" in report and "Env__ppo_mpc__default__h10__seed1" in report
+    assert "(short/exp2_default_planning.png)" in report
+
+
+def test_report_refuses_a_missing_analysis(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "report.py"), f"analyses=[{tmp_path}]"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode != 0 and f"no analysis.json for ['{tmp_path}']" in proc.stderr

@@ -1,0 +1,437 @@
+"""The thesis' experiments 1-4 from run folders: figures, tables, intervals and verdicts.
+
+:func:`analyze_experiments` reads every training run under some folders, groups them by method,
+reward and horizon, and writes the figures of the thesis' sections 7.1.1-7.1.4 with the tables
+behind them into one ``analysis.json``. Research questions Q1-Q4 (thesis section 1.1) get a
+verdict from 95% bootstrap intervals of the IQM over seeds, compared at the same real-step count.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchrl_mbmf.analysis.plots import plot_curves, plot_gait_comparison, save_image
+from torchrl_mbmf.analysis.runs import (
+    Run,
+    aggregate_curve,
+    compare_intervals,
+    final_values,
+    group_runs,
+    load_runs,
+    ppo_maximum_table,
+)
+from torchrl_mbmf.analysis.stats import Interval, bootstrap_ci
+
+DEFAULT_HORIZON = 10
+REWARDS = ("default", "head_pen", "shin_pen")
+
+
+def _interval_dict(values: Sequence[float]) -> dict[str, Any] | None:
+    if not values:
+        return None
+    ci = bootstrap_ci(values)
+    return {"iqm": ci.estimate, "low": ci.low, "high": ci.high, "n": ci.n, "values": list(values)}
+
+
+def _as_interval(d: dict[str, Any]) -> Interval:
+    return Interval(d["iqm"], d["low"], d["high"], 0.95, d["n"])
+
+
+def _common_step(groups: Iterable[Sequence[Run]]) -> int:
+    """The largest real step every run of every group has reached."""
+    return min(r.last_step for runs in groups for r in runs)
+
+
+def _comparison(
+    named: dict[str, list[Run]], reference: str, *, budget: int | None = None
+) -> dict[str, Any]:
+    """Intervals at a common step and PPO-maximum tables for a set of configurations."""
+    named = {k: v for k, v in named.items() if v}
+    if reference not in named or len(named) < 2:
+        return {"available": sorted(named), "complete": False}
+    step = _common_step(named.values())
+    if budget is not None:
+        step = min(step, budget)
+    out: dict[str, Any] = {
+        "available": sorted(named),
+        "complete": True,
+        "common_step": step,
+        "runs": {k: [r.name for r in v] for k, v in named.items()},
+        "partial_runs": {
+            r.name: r.last_step for v in named.values() for r in v if r.last_step < r.total_steps
+        },
+        "intervals": {k: _interval_dict(final_values(v, at_step=step)) for k, v in named.items()},
+        "tables": {
+            key: ppo_maximum_table(named, reference, budget=step, exclude_random=excl)
+            for key, excl in (("all_steps", False), ("without_random", True))
+        },
+    }
+    ref = out["intervals"][reference]
+    out["versus_reference"] = {
+        k: compare_intervals(_as_interval(v), _as_interval(ref))
+        for k, v in out["intervals"].items()
+        if k != reference and v is not None and ref is not None
+    }
+    return out
+
+
+def _curves_figure(
+    named: dict[str, list[Run]],
+    path: Path,
+    *,
+    title: str,
+    hline: float | None = None,
+    hline_label: str = "",
+    vlines: dict[str, float] | None = None,
+    end: int | None = None,
+) -> str | None:
+    named = {k: v for k, v in named.items() if v}
+    if not named:
+        return None
+    end = end or max(r.last_step for v in named.values() for r in v)
+    grid = np.linspace(0, end, 101)[1:].round().astype(np.int64)
+    curves = {k: aggregate_curve(v, grid=grid) for k, v in named.items()}
+    plot_curves(curves, path, title=title, hline=hline, hline_label=hline_label, vlines=vlines)
+    return path.name
+
+
+def _gait(runs: dict[str, Run], out_dir: Path, *, steps: int, render: bool) -> dict[str, Any]:
+    """Gait metrics (and frames) of one trained policy per label."""
+    from torchrl_mbmf.analysis.gait import frame_strip, gait_metrics, record_gait, render_states
+    from torchrl_mbmf.trainers.export import load_policy
+
+    metrics, out = {}, {"policies": {}, "metrics": {}}
+    for label, run in runs.items():
+        if not (run.path / "policy.pt").exists():
+            continue
+        actor, env, info = load_policy(run.path)
+        rollout = record_gait(env, actor, steps=steps)
+        m = gait_metrics(rollout)
+        metrics[label] = m
+        out["policies"][label] = {"run": run.name, "real_steps": info["real_steps"]}
+        out["metrics"][label] = {
+            "average_power_W": dict(zip(m.joints, m.average_power, strict=True)),
+            "total_abs_power_W": float(np.sum(m.average_abs_power)),
+            "height_std_m": m.height_std,
+            "distance_m": m.distance,
+            "episode_return_60_steps": float(rollout.get(("next", "reward")).sum()),
+        }
+        if render:
+            frames = render_states(rollout.get(("next", "state"))[:40])
+            name = f"gait_frames_{label}.png"
+            save_image(frame_strip(frames, num=8), out_dir / name)
+            out["policies"][label]["frames"] = name
+    if metrics:
+        plot_gait_comparison(metrics, out_dir / "gait.png")
+        out["figure"] = "gait.png"
+        m = out["metrics"]
+        out["steadiest"] = min(m, key=lambda k: m[k]["height_std_m"])
+        out["least_power"] = min(m, key=lambda k: m[k]["total_abs_power_W"])
+        out["furthest"] = max(m, key=lambda k: m[k]["distance_m"])
+    return out
+
+
+def _log_std_figure(runs: dict[str, list[Run]], path: Path) -> str | None:
+    named = {k: v for k, v in runs.items() if v and v[0].scalar("train/policy_log_std")[0].size}
+    if not named:
+        return None
+    end = max(r.last_step for v in named.values() for r in v)
+    grid = np.linspace(0, end, 101)[1:].round().astype(np.int64)
+    curves = {k: aggregate_curve(v, "train/policy_log_std", grid=grid) for k, v in named.items()}
+    plot_curves(
+        curves,
+        path,
+        title="PPO-MPC policy log standard deviation per reward (figure 19)",
+        ylabel="mean log std of the policy (log of action units)",
+        band=False,
+    )
+    return path.name
+
+
+def _horizon(roots: Sequence[str | Path]) -> dict[str, Any]:
+    """Tables 8 and 9 over the seeds of ``recipes/fit_world_model.py`` folders."""
+    files = sorted(p for root in roots for p in Path(root).rglob("horizon_mse.json"))
+    by_h: dict[int, dict[str, list[float]]] = {}
+    folders = []
+    for f in files:
+        folders.append(f.parent.name)
+        for e in json.loads(f.read_text()):
+            row = by_h.setdefault(int(e["horizon"]), {"x_mse": [], "reward_mse": []})
+            row["x_mse"].append(float(e["x_mse"]))
+            row["reward_mse"].append(float(e["reward_mse"]))
+    thesis = {5: (2.359, 0.3856), 10: (2.489, 0.50635), 25: (3.0342, 0.6238)}
+    rows = []
+    for h in sorted(by_h):
+        rows.append(
+            {
+                "horizon": h,
+                "x_mse": _interval_dict(by_h[h]["x_mse"]),
+                "reward_mse": _interval_dict(by_h[h]["reward_mse"]),
+                "thesis_x_mse": thesis.get(h, (None, None))[0],
+                "thesis_reward_mse": thesis.get(h, (None, None))[1],
+            }
+        )
+    return {"folders": folders, "rows": rows}
+
+
+def collect_runs(runs: Iterable[Run], dest: str | Path, *, max_file_bytes: int = 1_000_000) -> int:
+    r"""Copies each run's small result files into ``dest/<run name>/``.
+
+    Copied: config, summary, commit, scalar CSVs, exported policy and log; checkpoints are not.
+
+    Args:
+        runs: the runs.
+        dest: destination folder.
+
+    Keyword Args:
+        max_file_bytes: files above this size are skipped. Defaults to 1 MB.
+
+    Returns:
+        The number of files copied.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import load_runs
+        >>> from torchrl_mbmf.analysis.experiments import collect_runs
+        >>> src, dst = (pathlib.Path(tempfile.mkdtemp()) for _ in range(2))
+        >>> (src / "a/logs/scalars/train").mkdir(parents=True)
+        >>> _ = (src / "a/config.yaml").write_text("method: ppo\nseed: 0\n")
+        >>> _ = (src / "a/logs/scalars/train/episode_return.csv").write_text("1,2.0\n")
+        >>> collect_runs(load_runs(src), dst)
+        2
+    """
+    dest = Path(dest)
+    copied = 0
+    for run in runs:
+        files = [run.path / n for n in ("config.yaml", "summary.json", "git_commit.txt")]
+        files += [run.path / "policy.pt", run.path / "train.log"]
+        files += sorted((run.path / "logs" / "scalars").rglob("*.csv"))
+        for f in files:
+            if f.exists() and f.stat().st_size <= max_file_bytes:
+                target = dest / run.name / f.relative_to(run.path)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(f, target)
+                copied += 1
+    return copied
+
+
+def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, Any]:
+    """Q1/Q4-style verdict: does ``candidate`` need fewer real steps than ``reference``?"""
+    if not cmp.get("complete"):
+        return {"verdict": "not run", "why": f"runs available: {cmp.get('available')}"}
+    row = next(r for r in cmp["tables"]["all_steps"]["rows"] if r["label"] == candidate)
+    rel = cmp["versus_reference"].get(candidate, "n/a")
+    ci_c, ci_r = cmp["intervals"][candidate], cmp["intervals"][reference]
+    step = cmp["common_step"]
+    text = (
+        f"at {step} real steps {candidate} IQM {ci_c['iqm']:.0f} [{ci_c['low']:.0f}, "
+        f"{ci_c['high']:.0f}] vs {reference} {ci_r['iqm']:.0f} [{ci_r['low']:.0f}, "
+        f"{ci_r['high']:.0f}] (95% bootstrap CIs, {ci_c['n']} vs {ci_r['n']} seeds: {rel}); "
+    )
+    best = f"{reference}'s best ({cmp['tables']['all_steps']['threshold']:.0f})"
+    if row["step"] is None:
+        text += f"{candidate} never reached {best}"
+    else:
+        text += (
+            f"{candidate} reached {best} "
+            f"at {row['step']} real steps, ratio {row['ratio']:.2f} "
+            f"({row['seeds_reached']}/{len(row['seeds'])} seeds on their own)"
+        )
+    if rel == "higher" and row["ratio"] is not None and row["ratio"] < 1:
+        verdict = "supported"
+    elif rel == "lower" or row["step"] is None:
+        verdict = "not supported"
+    else:
+        verdict = "inconclusive"
+    return {"verdict": verdict, "why": text}
+
+
+def analyze_experiments(
+    run_roots: Sequence[str | Path],
+    out_dir: str | Path,
+    *,
+    world_model_roots: Sequence[str | Path] = (),
+    gait: bool = True,
+    render: bool = True,
+    gait_steps: int = 60,
+    collect: bool = True,
+) -> dict[str, Any]:
+    """Analyses experiments 1-4 over the runs under ``run_roots`` and writes figures and JSON.
+
+    Runs are grouped by (method, reward, horizon); seeds are aggregated with the IQM and 95%
+    bootstrap intervals. Comparisons are made at the largest real-step count every compared run
+    has reached, so that interrupted runs are compared fairly; tables count every real step
+    (``all_steps``) and, as the thesis also reports, without the random-data steps.
+
+    Args:
+        run_roots: folders holding training run folders (searched recursively).
+        out_dir: where ``analysis.json``, the PNG figures and (with ``collect``) the runs' raw
+            files go.
+
+    Keyword Args:
+        world_model_roots: folders of ``recipes/fit_world_model.py`` runs, for tables 8 and 9.
+        gait: run the gait analysis of the PPO-MPC policies (seed 0 per reward). Defaults to
+            ``True``.
+        render: render gait frames offscreen (needs ``MUJOCO_GL=egl`` or ``osmesa`` without a
+            display). Defaults to ``True``.
+        gait_steps: steps of the gait rollout. Defaults to ``60`` (the thesis' figures).
+        collect: copy each run's small files under ``out_dir/runs``. Defaults to ``True``.
+
+    Returns:
+        The analysis (also written to ``out_dir/analysis.json``).
+
+    Examples:
+        >>> from torchrl_mbmf.analysis.experiments import analyze_experiments
+        >>> analysis = analyze_experiments(["outputs/short"], "results/short")  # doctest: +SKIP
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    runs = load_runs(run_roots)
+    if not runs:
+        raise FileNotFoundError(f"no training run folders under {list(map(str, run_roots))}")
+    groups = group_runs(runs)
+    h = DEFAULT_HORIZON
+
+    def sel(method: str, reward: str = "default", horizon: int = h) -> list[Run]:
+        return groups.get((method, reward, horizon), [])
+
+    analysis: dict[str, Any] = {
+        "runs": [
+            {
+                "name": r.name,
+                "method": r.method,
+                "reward": r.reward,
+                "horizon": r.horizon,
+                "seed": r.seed,
+                "total_steps": r.total_steps,
+                "last_step": r.last_step,
+                "complete": r.complete,
+                "random_steps": r.random_steps,
+                "last10_mean_return": (final_values([r]) or [None])[0],
+                "final_eval_return": (final_values([r], "eval/return") or [None])[0],
+                "seconds": (r.summary or {}).get("seconds"),
+            }
+            for r in runs
+        ]
+    }
+
+    # Experiment 1: planning horizon (figure 8).
+    exp1 = {f"h={hh}": groups.get(("ppo_mpc", "default", hh), []) for hh in (5, 10, 25)}
+    cmp1 = _comparison(exp1, "h=10")
+    cmp1["figure"] = _curves_figure(
+        exp1,
+        out_dir / "exp1_horizon.png",
+        title="Experiment 1: PPO-MPC planning horizon (figure 8)",
+    )
+    analysis["exp1"] = cmp1
+
+    # Experiment 2 (figures 11a/11b, table 10) and 3 (figures 12, 13) per reward.
+    exp3: dict[str, Any] = {}
+    for reward in REWARDS:
+        named = {m: sel(m, reward) for m in ("ppo", "mpc", "ppo_mpc")}
+        planning = [r.switch_step for r in named["ppo_mpc"] if r.switch_step]
+        budget = min(planning) if planning else None
+        cmp = _comparison(named, "ppo", budget=budget)
+        if cmp.get("complete"):
+            cmp["figure"] = _curves_figure(
+                named,
+                out_dir / f"exp2_{reward}_planning.png",
+                title=f"PPO, MPC and PPO-MPC, {reward} reward, planning phase",
+                hline=cmp["tables"]["all_steps"]["threshold"],
+                hline_label="PPO maximum",
+                end=cmp["common_step"],
+            )
+        finetuned = [r for r in named["ppo_mpc"] if r.switch_step and r.last_step > r.switch_step]
+        if finetuned:
+            cmp["finetune_figure"] = _curves_figure(
+                {"ppo": named["ppo"], "ppo_mpc (fine-tuned after the switch)": finetuned},
+                out_dir / f"exp2_{reward}_finetune.png",
+                title=f"PPO vs PPO-MPC with warm-start fine-tuning, {reward} reward",
+                vlines={"switch to pure PPO": float(finetuned[0].switch_step)},
+            )
+            cmp["finetune"] = _comparison({"ppo": named["ppo"], "ppo_mpc": finetuned}, "ppo")
+        else:
+            cmp["finetune"] = {"complete": False, "why": "no PPO-MPC run went past its switch step"}
+        exp3[reward] = cmp
+    analysis["exp2"] = exp3["default"]
+    analysis["exp3"] = {k: v for k, v in exp3.items() if k != "default"}
+
+    log_std = {rw: sel("ppo_mpc", rw) for rw in REWARDS}
+    analysis["log_std_figure"] = _log_std_figure(log_std, out_dir / "exp3_log_std.png")
+    if gait:
+        seed0 = {rw: v[0] for rw, v in log_std.items() if v}
+        analysis["gait"] = _gait(seed0, out_dir, steps=gait_steps, render=render)
+
+    # Experiment 4: SAC vs SAC-MPC (figure 17).
+    exp4 = {m: sel(m) for m in ("sac", "sac_mpc")}
+    cmp4 = _comparison(exp4, "sac")
+    if cmp4.get("complete"):
+        cmp4["figure"] = _curves_figure(
+            exp4,
+            out_dir / "exp4_sac.png",
+            title="Experiment 4: SAC vs SAC-MPC (figure 17)",
+            hline=cmp4["tables"]["all_steps"]["threshold"],
+            hline_label="SAC maximum",
+            end=cmp4["common_step"],
+        )
+    analysis["exp4"] = cmp4
+
+    analysis["horizon_mse"] = _horizon(world_model_roots) if world_model_roots else None
+
+    # Verdicts on the research questions (thesis section 1.1).
+    q2 = {"verdict": "not run", "why": "needs PPO-MPC and MPC runs"}
+    e2 = analysis["exp2"]
+    if e2.get("complete") and "mpc" in e2["intervals"] and e2["intervals"]["mpc"]:
+        rel = compare_intervals(
+            _as_interval(e2["intervals"]["ppo_mpc"]), _as_interval(e2["intervals"]["mpc"])
+        )
+        a, b = e2["intervals"]["ppo_mpc"], e2["intervals"]["mpc"]
+        q2 = {
+            "verdict": {"higher": "supported", "lower": "not supported"}.get(rel, "inconclusive"),
+            "why": f"at {e2['common_step']} real steps PPO-MPC IQM {a['iqm']:.0f} "
+            f"[{a['low']:.0f}, {a['high']:.0f}] vs MPC {b['iqm']:.0f} [{b['low']:.0f}, "
+            f"{b['high']:.0f}] (95% bootstrap CIs): {rel}",
+        }
+    q3_parts = {
+        rw: _verdict(exp3[rw], "ppo_mpc", "ppo") for rw in REWARDS if exp3[rw].get("complete")
+    }
+    if len(q3_parts) < 2:
+        q3_verdict = "not run"
+    elif all(p["verdict"] == "supported" for p in q3_parts.values()):
+        q3_verdict = "robust"
+    else:
+        q3_verdict = "reward-sensitive"
+    q3 = {
+        "verdict": q3_verdict,
+        "per_reward": q3_parts,
+        "gait": {
+            k: analysis.get("gait", {}).get(k) for k in ("steadiest", "least_power", "furthest")
+        },
+    }
+    analysis["verdicts"] = {
+        "Q1": _verdict(analysis["exp2"], "ppo_mpc", "ppo"),
+        "Q2": q2,
+        "Q3": q3,
+        "Q4": _verdict(analysis["exp4"], "sac_mpc", "sac"),
+    }
+    if collect:
+        analysis["collected_files"] = collect_runs(runs, out_dir / "runs")
+    (out_dir / "analysis.json").write_text(json.dumps(analysis, indent=2, default=_jsonable))
+    return analysis
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"cannot serialise {type(x).__name__}")
+
+
+__all__ = ["analyze_experiments", "collect_runs"]

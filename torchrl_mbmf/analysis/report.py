@@ -1,0 +1,259 @@
+"""Markdown report of the experiments next to the thesis' own numbers."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+# The thesis' numbers the report sets ours against (sections 7.1.1-7.1.4, 8).
+THESIS = {
+    "exp1": "h = 10 gave the highest returns, a maximum average return of 1908 within 4e5 steps; "
+    "h = 5 led early (before ~1e5 steps), h = 25 lagged throughout.",
+    "table10": [
+        ("PPO", "1247", "393,216"),
+        ("MPC", "-", "never reached"),
+        ("PPO-MPC", "1265", "274,432"),
+    ],
+    "finetune": "PPO reaches ~3000 at 1e6 steps; fine-tuned PPO-MPC reaches it at ~7e5 steps.",
+    "exp3": "HeadPen and ShinPen: PPO-MPC falls behind PPO (HeadPen from ~2e5 steps); ShinPen "
+    "gives the steadiest gait (least torso height variation), least joint power and the furthest "
+    "distance in 60 steps; HeadPen the least stable gait; Default has the lowest policy log-std.",
+    "exp4": "SAC-MPC reaches SAC's maximum at 1.25e5 steps, SAC at 2e5 (ratio 0.625).",
+    "Q1": "yes: PPO-MPC reaches PPO's maximum ~1e5 steps earlier (table 10), and fine-tuned "
+    "PPO-MPC reaches PPO's 1e6-step score at ~7e5 steps",
+    "Q2": "yes: policy-guided planning always beat naive MPC",
+    "Q3": "reward-sensitive: PPO-MPC's advantage holds for Default only; ShinPen has the most "
+    "efficient gait",
+    "Q4": "yes: SAC-MPC needs 7.5e4 fewer samples than SAC",
+}
+
+
+def _fmt(x: Any, digits: int = 0) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return f"{x:,.{digits}f}"
+    if isinstance(x, int):
+        return f"{x:,}"
+    return str(x)
+
+
+def _ci(d: Mapping[str, Any] | None, digits: int = 0) -> str:
+    if not d:
+        return "-"
+    return f"{d['iqm']:,.{digits}f} [{d['low']:,.{digits}f}, {d['high']:,.{digits}f}] (n={d['n']})"
+
+
+def _figure(rel: str, name: str | None, caption: str) -> list[str]:
+    return [f"![{caption}]({rel}/{name})", f"*{caption}*", ""] if name else []
+
+
+def _comparison_md(cmp: Mapping[str, Any], rel: str, caption: str, thesis: str | None) -> list[str]:
+    if not cmp.get("complete"):
+        return [f"Not run at this budget (runs available: {cmp.get('available', [])}).", ""]
+    out = _figure(rel, cmp.get("figure"), caption)
+    out += [
+        f"Compared at **{cmp['common_step']:,} real steps** (the largest count every compared "
+        "run reached), IQM over seeds of the last-10-episode mean return with its 95% "
+        "bootstrap interval:",
+        "",
+        "| configuration | return at the common step | seeds |",
+        "|---|---|---|",
+    ]
+    for label, iv in cmp["intervals"].items():
+        out.append(f"| {label} | {_ci(iv)} | {', '.join(cmp['runs'][label])} |")
+    out.append("")
+    for key, title in (
+        ("all_steps", "every real step counted (random-data steps included)"),
+        ("without_random", "random-data steps not counted (the thesis' convention)"),
+    ):
+        t = cmp["tables"][key]
+        out += [
+            f"First step reaching the {t['reference']} maximum ({t['threshold']:,.0f}), {title}:",
+            "",
+            "| configuration | best IQM return | first step | ratio to reference "
+            "| seeds reaching it alone |",
+            "|---|---|---|---|---|",
+        ]
+        for r in t["rows"]:
+            ratio = "-" if r["ratio"] is None else f"{r['ratio']:.2f}"
+            out.append(
+                f"| {r['label']} | {_fmt(r['best'])} | {_fmt(r['step'])} | {ratio} | "
+                f"{r['seeds_reached']}/{len(r['seeds'])} |"
+            )
+        out.append("")
+    if cmp.get("partial_runs"):
+        parts = ", ".join(f"{k} stopped at {v:,}" for k, v in cmp["partial_runs"].items())
+        out += [f"Partial runs (interrupted before their budget): {parts}.", ""]
+    if thesis:
+        out += [f"Thesis: {thesis}", ""]
+    return out
+
+
+def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
+    out = [f"## Budget `{name}`", ""]
+    runs = analysis["runs"]
+    out += [
+        "### Runs",
+        "",
+        "| run | steps reached / budget | random-data steps | last-10 mean return "
+        "| eval return | hours |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        done = "" if r["complete"] else " (partial)"
+        hours = "-" if r["seconds"] is None else f"{r['seconds'] / 3600:.2f}"
+        out.append(
+            f"| {r['name']} | {r['last_step']:,} / {r['total_steps']:,}{done} | "
+            f"{r['random_steps']:,} | {_fmt(r['last10_mean_return'])} | "
+            f"{_fmt(r['final_eval_return'])} | {hours} |"
+        )
+    out.append("")
+    out += ["### Experiment 1: planning horizon (figure 8)", ""]
+    out += _comparison_md(analysis["exp1"], rel, "PPO-MPC with h = 5, 10, 25", THESIS["exp1"])
+    hm = analysis.get("horizon_mse")
+    if hm and hm["rows"]:
+        out += [
+            "World-model open-loop errors (tables 8 and 9), model fitted on the random-policy "
+            f"data, evaluated on held-out random episodes; IQM over {len(hm['folders'])} "
+            "seeds with 95% bootstrap interval:",
+            "",
+            "| h | x-position MSE (m^2) | thesis table 8 | reward MSE | thesis table 9 |",
+            "|---|---|---|---|---|",
+        ]
+        for row in hm["rows"]:
+            out.append(
+                f"| {row['horizon']} | {_ci(row['x_mse'], 4)} | {_fmt(row['thesis_x_mse'], 4)} | "
+                f"{_ci(row['reward_mse'], 4)} | {_fmt(row['thesis_reward_mse'], 4)} |"
+            )
+        out.append("")
+    out += ["### Experiment 2: PPO vs MPC vs PPO-MPC (figures 11a/11b, table 10)", ""]
+    table10 = "; ".join(f"{a}: {b} at {c}" for a, b, c in THESIS["table10"])
+    out += _comparison_md(
+        analysis["exp2"], rel, "Default reward, planning phase", f"table 10 — {table10}."
+    )
+    ft = analysis["exp2"].get("finetune", {})
+    if ft.get("complete"):
+        out += ["Fine-tuning continuation (figure 11b):", ""]
+        out += _comparison_md(ft, rel, "fine-tuning", THESIS["finetune"])
+        out += _figure(rel, analysis["exp2"].get("finetune_figure"), "PPO vs fine-tuned PPO-MPC")
+    else:
+        out += [f"Fine-tuning continuation: not run at this budget ({ft.get('why', '')}).", ""]
+    out += ["### Experiment 3: rewards (figures 12-16, 18-21)", ""]
+    for reward, cmp in analysis["exp3"].items():
+        out += [f"#### {reward}", ""]
+        out += _comparison_md(cmp, rel, f"{reward} reward, planning phase", None)
+    out += [f"Thesis: {THESIS['exp3']}", ""]
+    out += _figure(
+        rel, analysis.get("log_std_figure"), "PPO-MPC policy log-std per reward (figure 19)"
+    )
+    gait = analysis.get("gait") or {}
+    if gait.get("metrics"):
+        out += [
+            "Gait of each reward's seed-0 PPO-MPC policy, 60 deterministic steps (equation 20, "
+            "figures 14-16):",
+            "",
+            "| reward | policy at real step | sum of mean abs joint power (W) "
+            "| torso height std (m) | distance in 60 steps (m) |",
+            "|---|---|---|---|---|",
+        ]
+        for label, m in gait["metrics"].items():
+            p = gait["policies"][label]
+            out.append(
+                f"| {label} | {p['real_steps']:,} | {m['total_abs_power_W']:.2f} | "
+                f"{m['height_std_m']:.4f} | {m['distance_m']:.2f} |"
+            )
+        out += [
+            "",
+            f"Steadiest: {gait['steadiest']}; least power: {gait['least_power']}; furthest: "
+            f"{gait['furthest']}.",
+            "",
+        ]
+        out += _figure(rel, gait.get("figure"), "power per joint, torso height, torso x")
+        for label, p in gait["policies"].items():
+            out += _figure(
+                rel, p.get("frames"), f"gait frames, {label} reward (figures 18, 20, 21)"
+            )
+    out += ["### Experiment 4: SAC vs SAC-MPC (figure 17)", ""]
+    out += _comparison_md(analysis["exp4"], rel, "SAC vs SAC-MPC", THESIS["exp4"])
+    out += [
+        "### Research questions",
+        "",
+        "| question | thesis | ours | evidence |",
+        "|---|---|---|---|",
+    ]
+    for q in ("Q1", "Q2", "Q3", "Q4"):
+        v = analysis["verdicts"][q]
+        why = v.get("why", "")
+        if q == "Q3":
+            why = "; ".join(f"{k}: {p['verdict']} ({p['why']})" for k, p in v["per_reward"].items())
+            g = v.get("gait") or {}
+            if any(g.values()):
+                why += f"; gait: steadiest {g['steadiest']}, least power {g['least_power']}"
+        out.append(f"| {q} | {THESIS[q]} | **{v['verdict']}** | {why} |")
+    out.append("")
+    return out
+
+
+def write_report(
+    analyses: Mapping[str, str | Path],
+    path: str | Path,
+    *,
+    notes: str | Path | None = None,
+    commands: Sequence[str] = (),
+    version: str = "",
+    commit: str = "",
+) -> str:
+    """Writes the Markdown report of one or more analysed budgets.
+
+    Args:
+        analyses: ``{budget name: folder holding analysis.json and its figures}``.
+        path: the Markdown file to write (figures are linked relative to it).
+
+    Keyword Args:
+        notes: a Markdown file included after the header (the authors' discussion: where and
+            why results agree or disagree with the thesis, what ran where).
+        commands: the commands that produced the runs, listed in the report.
+        version: package version to state.
+        commit: git commit to state.
+
+    Returns:
+        The report text.
+
+    Examples:
+        >>> from torchrl_mbmf.analysis.report import write_report
+        >>> text = write_report({"short": "results/short"}, "results/REPORT.md")  # doctest: +SKIP
+    """
+    path = Path(path)
+    lines = [
+        "# torchrl_mbmf: experiments of the thesis, reproduced",
+        "",
+        f"Package version {version or '-'}, git commit `{commit or '-'}`. Generated by "
+        "`recipes/report.py` from the analyses of `recipes/analyze.py`; every number below "
+        "comes from the run folders under `results/*/runs`.",
+        "",
+        "Conventions: returns are the mean of the last 10 training episodes, aggregated over "
+        "seeds with the interquartile mean (IQM) and a 95% percentile-bootstrap interval; "
+        "unless a table says otherwise, step counts include every real environment step, the "
+        "random-policy steps that fit the first world model among them.",
+        "",
+    ]
+    if notes is not None and Path(notes).exists():
+        lines += [Path(notes).read_text().strip(), ""]
+    if commands:
+        lines += ["## Commands", "", "```bash", *commands, "```", ""]
+    for name, folder in analyses.items():
+        folder = Path(folder)
+        analysis = json.loads((folder / "analysis.json").read_text())
+        rel = os.path.relpath(folder, path.parent)
+        lines += _section(name, analysis, rel)
+    text = "\n".join(lines).rstrip() + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return text
+
+
+__all__ = ["write_report"]

@@ -1,0 +1,520 @@
+"""Reading training run folders and turning them into across-seed curves and tables.
+
+A run folder written by ``recipes/train.py`` holds ``config.yaml``, ``logs/scalars/<group>/
+<name>.csv`` (rows ``step,value``, the step being the global real-step count) and, once finished,
+``summary.json``. The functions here load such folders (finished or interrupted), aggregate a
+scalar over seeds on a common step grid with the interquartile mean and a bootstrap confidence
+interval, and compute the thesis' "PPO-maximum" sample-efficiency table (table 10).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from torchrl_mbmf.analysis.stats import Interval, bootstrap_ci, first_step_reaching
+
+MODEL_BASED_METHODS = ("mpc", "ppo_mpc", "sac_mpc")
+RETURN_CURVE = "train/return_last10_mean"
+
+
+@dataclass
+class Run:
+    r"""One training run folder.
+
+    Attributes:
+        path: the run folder.
+        config: its resolved config (``config.yaml``) as a dict.
+        summary: ``summary.json`` as a dict, or ``None`` for a run that has not finished.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> (d / "logs/scalars/train").mkdir(parents=True)
+        >>> _ = (d / "logs/scalars/train/episode_return.csv").write_text("1000,5.0\n2000,7.0\n")
+        >>> run = Run(d, {"method": "ppo", "seed": 0}, None)
+        >>> run.scalar("train/episode_return")[1].tolist(), run.last_step, run.complete
+        ([5.0, 7.0], 2000, False)
+    """
+
+    path: Path
+    config: dict[str, Any]
+    summary: dict[str, Any] | None = None
+    _cache: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False, init=False)
+
+    @property
+    def name(self) -> str:
+        """The run folder's name."""
+        return self.path.name
+
+    @property
+    def method(self) -> str:
+        """The training method (``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` or ``sac_mpc``)."""
+        return str(self.config["method"])
+
+    @property
+    def reward(self) -> str:
+        """The reward variant's name."""
+        return str(self.config.get("reward", {}).get("name", "default"))
+
+    @property
+    def horizon(self) -> int:
+        """The planning horizon (meaningful for model-based methods only)."""
+        return int(self.config.get("planner", {}).get("horizon", 0))
+
+    @property
+    def seed(self) -> int:
+        """The run's seed."""
+        return int(self.config["seed"])
+
+    @property
+    def total_steps(self) -> int:
+        """The configured budget of real steps."""
+        return int(self.config.get("total_steps", 0))
+
+    @property
+    def complete(self) -> bool:
+        """Whether the run finished (it wrote ``summary.json``)."""
+        return self.summary is not None
+
+    @property
+    def random_steps(self) -> int:
+        """Random-policy real steps collected to fit the first world model (0 if model-free)."""
+        if self.summary is not None and "random_steps" in self.summary:
+            return int(self.summary["random_steps"])
+        if self.method in MODEL_BASED_METHODS:
+            return int(self.config["world_model"]["random_steps"])
+        return 0
+
+    @property
+    def switch_step(self) -> int | None:
+        """Real step at which planning stops and pure PPO fine-tuning starts (MPC methods)."""
+        if self.method not in ("mpc", "ppo_mpc"):
+            return None
+        frames = int(self.config["ppo"]["frames_per_batch"])
+        return self.random_steps + int(self.config["planning_updates"]) * frames
+
+    @property
+    def last_step(self) -> int:
+        """The last real step the run logged (its progress if interrupted)."""
+        if self.summary is not None:
+            return int(self.summary["real_steps"])
+        ends = [self.scalar(n)[0] for n in ("train/episode_return", RETURN_CURVE)]
+        return max((int(s[-1]) for s in ends if s.size), default=0)
+
+    def scalar(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Loads a logged scalar as ``(steps, values)`` arrays (empty if never logged).
+
+        Args:
+            name: the scalar's name, for example ``"train/return_last10_mean"``.
+        """
+        if name not in self._cache:
+            path = self.path / "logs" / "scalars" / f"{name}.csv"
+            rows = []
+            if path.exists():
+                with path.open() as f:
+                    rows = [(int(float(r[0])), float(r[1])) for r in csv.reader(f) if r]
+            steps = np.array([r[0] for r in rows], dtype=np.int64)
+            values = np.array([r[1] for r in rows], dtype=np.float64)
+            self._cache[name] = (steps, values)
+        return self._cache[name]
+
+
+def load_runs(roots: str | Path | Iterable[str | Path]) -> list[Run]:
+    r"""Finds every run folder (one with ``config.yaml`` and ``logs/scalars``) under ``roots``.
+
+    Args:
+        roots: one folder or several, searched recursively.
+
+    Returns:
+        The runs, sorted by folder name.
+
+    Raises:
+        FileNotFoundError: a root does not exist.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import load_runs
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> (d / "a/logs/scalars").mkdir(parents=True)
+        >>> _ = (d / "a/config.yaml").write_text("method: ppo\nseed: 1\n")
+        >>> [(r.name, r.method, r.seed) for r in load_runs(d)]
+        [('a', 'ppo', 1)]
+    """
+    if isinstance(roots, str | Path):
+        roots = [roots]
+    runs = []
+    for root in roots:
+        root = Path(root)
+        if not root.exists():
+            raise FileNotFoundError(f"run root {root} does not exist")
+        for cfg_path in sorted(root.rglob("config.yaml")):
+            folder = cfg_path.parent
+            if not (folder / "logs" / "scalars").is_dir():
+                continue  # Hydra's own .hydra/config.yaml, or a world-model job
+            config = yaml.safe_load(cfg_path.read_text())
+            summary_path = folder / "summary.json"
+            summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
+            runs.append(Run(folder, config, summary))
+    return sorted(runs, key=lambda r: r.name)
+
+
+def group_runs(
+    runs: Iterable[Run], keys: Sequence[str] = ("method", "reward", "horizon")
+) -> dict[tuple[Any, ...], list[Run]]:
+    """Groups runs that differ only by seed.
+
+    Args:
+        runs: the runs.
+        keys: :class:`Run` attributes that define a group. Defaults to method, reward, horizon.
+
+    Returns:
+        ``{key tuple: runs sorted by seed}``.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> from torchrl_mbmf.analysis.runs import Run, group_runs
+        >>> runs = [Run(Path(f"r{s}"), {"method": "ppo", "seed": s}) for s in (1, 0)]
+        >>> {k: [r.seed for r in v] for k, v in group_runs(runs, ["method"]).items()}
+        {('ppo',): [0, 1]}
+    """
+    groups: dict[tuple[Any, ...], list[Run]] = {}
+    for run in runs:
+        groups.setdefault(tuple(getattr(run, k) for k in keys), []).append(run)
+    return {k: sorted(v, key=lambda r: r.seed) for k, v in sorted(groups.items())}
+
+
+@dataclass
+class Curve:
+    """A scalar aggregated over seeds on a grid of real steps.
+
+    Attributes:
+        steps: the grid (real steps).
+        iqm: interquartile mean over seeds at each grid step (NaN where no seed has data).
+        low: lower bound of the 95% bootstrap interval of the IQM.
+        high: upper bound of the interval.
+        band_min: minimum over seeds of the last-10-episode minimum (the thesis' shaded band;
+            equal to the seeds' minimum of the scalar itself for other scalars).
+        band_max: maximum over seeds of the last-10-episode maximum.
+        per_seed: ``[seeds, grid]`` values of each seed.
+        seeds: the seeds.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchrl_mbmf.analysis.runs import Curve
+        >>> c = Curve(*(np.zeros(2) for _ in range(6)), np.zeros((1, 2)), [0])
+        >>> c.steps.shape
+        (2,)
+    """
+
+    steps: np.ndarray
+    iqm: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    band_min: np.ndarray
+    band_max: np.ndarray
+    per_seed: np.ndarray
+    seeds: list[int]
+
+    def to_dict(self) -> dict[str, list]:
+        """The curve as JSON-serialisable lists (NaN as ``None``)."""
+
+        def clean(a: np.ndarray) -> list:
+            return [None if not np.isfinite(x) else float(x) for x in np.ravel(a)]
+
+        return {
+            "steps": [int(s) for s in self.steps],
+            "iqm": clean(self.iqm),
+            "low": clean(self.low),
+            "high": clean(self.high),
+            "band_min": clean(self.band_min),
+            "band_max": clean(self.band_max),
+            "seeds": list(self.seeds),
+        }
+
+
+def _on_grid(steps: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Last value carried forward onto ``grid``; NaN before the first and after the last log."""
+    idx = np.searchsorted(steps, grid, side="right") - 1
+    out = np.full(grid.shape, np.nan)
+    if steps.size:
+        ok = (idx >= 0) & (grid <= steps[-1])
+        out[ok] = values[idx[ok]]
+    return out
+
+
+def aggregate_curve(
+    runs: Sequence[Run],
+    name: str = RETURN_CURVE,
+    *,
+    grid: np.ndarray | None = None,
+    points: int = 100,
+    exclude_random: bool = False,
+    n_resamples: int = 1000,
+) -> Curve:
+    r"""Aggregates one scalar of several seeds on a common grid of real steps.
+
+    Each seed's curve is read with its last value carried forward (up to the seed's last logged
+    step: an interrupted seed stops contributing there). At each grid step the seeds are reduced
+    with the IQM and a 95% percentile-bootstrap interval.
+
+    Args:
+        runs: runs of one configuration (different seeds).
+        name: the scalar. Defaults to the mean of the last 10 episode returns.
+
+    Keyword Args:
+        grid: real steps to read at; by default ``points`` steps up to the longest run.
+        points: grid size when ``grid`` is not given. Defaults to ``100``.
+        exclude_random: subtract each run's random-data steps from its step axis (the thesis'
+            "without random steps" count). Defaults to ``False``: every real step counts.
+        n_resamples: bootstrap resamples per grid step. Defaults to ``1000``.
+
+    Returns:
+        A :class:`Curve`.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run, aggregate_curve
+        >>> runs = []
+        >>> for seed in range(3):
+        ...     d = pathlib.Path(tempfile.mkdtemp())
+        ...     (d / "logs/scalars/train").mkdir(parents=True)
+        ...     rows = "".join(f"{s},{s / 100 + seed}\n" for s in (100, 200, 300))
+        ...     _ = (d / "logs/scalars/train/return_last10_mean.csv").write_text(rows)
+        ...     runs.append(Run(d, {"method": "ppo", "seed": seed}))
+        >>> aggregate_curve(runs, grid=[100, 300]).iqm.tolist()
+        [2.0, 4.0]
+    """
+    if not runs:
+        raise ValueError("aggregate_curve needs at least one run")
+    shifted = []
+    for run in runs:
+        steps, values = run.scalar(name)
+        offset = run.random_steps if exclude_random else 0
+        shifted.append((steps - offset, values, offset))
+    if grid is None:
+        end = max((s[-1] for s, _, _ in shifted if s.size), default=0)
+        grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
+    grid = np.asarray(grid, dtype=np.int64)
+    per_seed = np.stack([_on_grid(s, v, grid) for s, v, _ in shifted])
+    band_lo, band_hi = per_seed.copy(), per_seed.copy()
+    if name == RETURN_CURVE:
+        for i, run in enumerate(runs):
+            off = shifted[i][2]
+            for key, out in (
+                ("train/return_last10_min", band_lo),
+                ("train/return_last10_max", band_hi),
+            ):
+                s, v = run.scalar(key)
+                if s.size:
+                    out[i] = _on_grid(s - off, v, grid)
+    center, low, high = (np.full(grid.shape, np.nan) for _ in range(3))
+    for j in range(grid.size):
+        col = per_seed[:, j]
+        col = col[np.isfinite(col)]
+        if col.size:
+            ci = bootstrap_ci(col, n_resamples=n_resamples, seed=j)
+            center[j], low[j], high[j] = ci.estimate, ci.low, ci.high
+    with np.errstate(all="ignore"):
+        all_nan = ~np.isfinite(band_lo).any(0)
+        band_min = np.where(
+            all_nan, np.nan, np.nanmin(np.where(np.isfinite(band_lo), band_lo, np.inf), 0)
+        )
+        band_max = np.where(
+            all_nan, np.nan, np.nanmax(np.where(np.isfinite(band_hi), band_hi, -np.inf), 0)
+        )
+    return Curve(grid, center, low, high, band_min, band_max, per_seed, [r.seed for r in runs])
+
+
+def final_values(
+    runs: Sequence[Run], name: str = RETURN_CURVE, *, at_step: int | None = None
+) -> list[float]:
+    r"""Each seed's value of a scalar at ``at_step`` (last value logged at or before it).
+
+    Args:
+        runs: runs of one configuration.
+        name: the scalar. Defaults to the mean of the last 10 episode returns.
+
+    Keyword Args:
+        at_step: the real step; by default each run's last logged value.
+
+    Returns:
+        One value per run that logged the scalar by then (runs without data are left out).
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run, final_values
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> (d / "logs/scalars/train").mkdir(parents=True)
+        >>> _ = (d / "logs/scalars/train/return_last10_mean.csv").write_text("10,1.0\n20,3.0\n")
+        >>> final_values([Run(d, {"method": "ppo", "seed": 0})], at_step=15)
+        [1.0]
+    """
+    out = []
+    for run in runs:
+        steps, values = run.scalar(name)
+        if at_step is not None:
+            keep = steps <= at_step
+            steps, values = steps[keep], values[keep]
+        if values.size:
+            out.append(float(values[-1]))
+    return out
+
+
+def compare_intervals(a: Interval, b: Interval) -> str:
+    """Compares two bootstrap intervals: ``"higher"``, ``"lower"`` or ``"overlapping"``.
+
+    Args:
+        a: the interval of the first configuration.
+        b: the interval of the second.
+
+    Examples:
+        >>> from torchrl_mbmf.analysis.stats import Interval
+        >>> from torchrl_mbmf.analysis.runs import compare_intervals
+        >>> compare_intervals(Interval(5, 4, 6, 0.95, 3), Interval(1, 0, 2, 0.95, 3))
+        'higher'
+    """
+    if a.low > b.high:
+        return "higher"
+    if a.high < b.low:
+        return "lower"
+    return "overlapping"
+
+
+def ppo_maximum_table(
+    groups: Mapping[str, Sequence[Run]],
+    reference: str,
+    *,
+    budget: int | None = None,
+    exclude_random: bool = False,
+    points: int = 400,
+) -> dict[str, Any]:
+    r"""The thesis' "PPO-maximum" table (table 10), on across-seed IQM curves.
+
+    The threshold is the best value the reference's aggregated last-10-episode curve reaches
+    within ``budget`` real steps; for every configuration the table gives the first real step at
+    which its own aggregated curve reaches that threshold, and the ratio to the reference's step
+    (below 1: fewer real steps than the reference). Per-seed first steps are given too, each
+    seed's own curve against the same threshold.
+
+    Args:
+        groups: ``{label: runs}``, one entry per configuration; must hold ``reference``.
+        reference: the label whose maximum is the threshold (``"ppo"`` or ``"sac"``).
+
+    Keyword Args:
+        budget: only steps up to this count are considered (the planning budget). Defaults to
+            the longest run.
+        exclude_random: count steps without the random-data steps. Defaults to ``False``.
+        points: grid resolution. Defaults to ``400``.
+
+    Returns:
+        ``{"threshold", "budget", "exclude_random", "rows": [{label, step, ratio, seeds_reached,
+        per_seed_steps, seeds}]}``; ``step`` and ``ratio`` are ``None`` where never reached.
+
+    Raises:
+        KeyError: ``reference`` is not in ``groups``.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run, ppo_maximum_table
+        >>> def run(label, rows):
+        ...     d = pathlib.Path(tempfile.mkdtemp())
+        ...     (d / "logs/scalars/train").mkdir(parents=True)
+        ...     text = "".join(f"{s},{v}\n" for s, v in rows)
+        ...     _ = (d / "logs/scalars/train/return_last10_mean.csv").write_text(text)
+        ...     return Run(d, {"method": label, "seed": 0})
+        >>> groups = {"ppo": [run("ppo", [(100, 0.0), (200, 5.0)])],
+        ...           "sac": [run("sac", [(100, 6.0), (200, 7.0)])]}
+        >>> t = ppo_maximum_table(groups, "ppo", points=2)
+        >>> [(r["label"], r["step"], r["ratio"]) for r in t["rows"]]
+        [('ppo', 200, 1.0), ('sac', 100, 0.5)]
+    """
+    if reference not in groups:
+        raise KeyError(f"reference {reference!r} not among the groups {sorted(groups)}")
+    end = budget
+    if end is None:
+        end = max(r.last_step for runs in groups.values() for r in runs)
+    grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
+    curves = {
+        label: aggregate_curve(runs, grid=grid, exclude_random=exclude_random, n_resamples=200)
+        for label, runs in groups.items()
+    }
+    ref = curves[reference].iqm
+    if not np.isfinite(ref).any():
+        raise ValueError(f"the reference {reference!r} logged no returns within {end} steps")
+    threshold = float(np.nanmax(ref))
+    ref_step = first_step_reaching(grid, np.nan_to_num(ref, nan=-np.inf), threshold)
+    rows = []
+    for label, curve in curves.items():
+        step = first_step_reaching(grid, np.nan_to_num(curve.iqm, nan=-np.inf), threshold)
+        per_seed = [
+            first_step_reaching(grid, np.nan_to_num(row, nan=-np.inf), threshold)
+            for row in curve.per_seed
+        ]
+        rows.append(
+            {
+                "label": label,
+                "step": step,
+                "ratio": None if step is None or not ref_step else step / ref_step,
+                "best": float(np.nanmax(curve.iqm)) if np.isfinite(curve.iqm).any() else None,
+                "seeds_reached": sum(s is not None for s in per_seed),
+                "per_seed_steps": per_seed,
+                "seeds": curve.seeds,
+            }
+        )
+    return {
+        "reference": reference,
+        "threshold": threshold,
+        "budget": int(end),
+        "exclude_random": exclude_random,
+        "rows": rows,
+    }
+
+
+def interval_of(
+    runs: Sequence[Run], name: str = RETURN_CURVE, *, at_step: int | None = None
+) -> Interval | None:
+    r"""IQM and 95% bootstrap interval over seeds of :func:`final_values`.
+
+    Args:
+        runs: runs of one configuration.
+        name: the scalar. Defaults to the mean of the last 10 episode returns.
+
+    Keyword Args:
+        at_step: read each seed at this real step; by default at its end.
+
+    Returns:
+        The :class:`~torchrl_mbmf.analysis.stats.Interval`, or ``None`` without data.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run, interval_of
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> (d / "logs/scalars/train").mkdir(parents=True)
+        >>> _ = (d / "logs/scalars/train/return_last10_mean.csv").write_text("10,2.0\n")
+        >>> str(interval_of([Run(d, {"method": "ppo", "seed": 0})]))
+        '2 [2, 2]'
+    """
+    values = final_values(runs, name, at_step=at_step)
+    return bootstrap_ci(values) if values else None
+
+
+__all__ = [
+    "Curve",
+    "Run",
+    "aggregate_curve",
+    "compare_intervals",
+    "final_values",
+    "group_runs",
+    "interval_of",
+    "load_runs",
+    "ppo_maximum_table",
+]
