@@ -71,6 +71,8 @@ def test_every_config_composes(group):
         ("sac", ["sac.update=stock"]),
         ("sac", ["env.num_envs=2", "checkpoint.every_steps=100000"]),
         ("sac_mpc", []),
+        ("ppo_mpc", ["planner.terminal_value=true", "planner.refinement=cem"]),
+        ("sac_mpc", ["planner.terminal_value=true", "planner.refinement=mppi"]),
     ],
 )
 def test_method_smoke_run(tmp_path, method, extra):
@@ -129,12 +131,23 @@ def test_half_cheetah_ppo_mpc_tiny(tmp_path):
         (["sac.update=jit"], "sac.update='jit' is not supported; allowed"),
         (["method=mpc", "world_model.random_steps=0"], "world_model.random_steps must be"),
         (["total_steps=0"], "total_steps must be a number >= 1, got 0"),
+        (["planner.refinement=icem"], "planner.refinement='icem' is not supported; allowed"),
+        (["method=mpc", "planner.refinement=cem"], "needs method ppo_mpc or sac_mpc"),
+        (["planner.refinement=cem", "planner.num_elites=16"], "planner.num_elites must be"),
+        (["planner.refinement=mppi", "planner.temperature=0"], "planner.temperature must be"),
+        (["planner.terminal_value=maybe"], "planner.terminal_value must be true or false"),
     ],
 )
 def test_bad_config_fails_before_work(overrides, message):
     cfg = _compose(*overrides)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         validate_train_config(cfg)
+
+
+def test_variants_get_their_own_run_folders():
+    assert _compose().run_name == "HalfCheetah-v5__ppo_mpc__default__h10__seed0"
+    cfg = _compose("planner.terminal_value=true", "planner.refinement=cem", "seed=2")
+    assert cfg.run_name == "HalfCheetah-v5__ppo_mpc__default__h10__value-cem__seed2"
 
 
 def test_bad_config_subprocess_message(tmp_path):

@@ -298,8 +298,8 @@ def analyze_experiments(
     groups = group_runs(runs)
     h = DEFAULT_HORIZON
 
-    def sel(method: str, reward: str = "default", horizon: int = h) -> list[Run]:
-        return groups.get((method, reward, horizon), [])
+    def sel(method: str, reward: str = "default", horizon: int = h, variant: str = "") -> list[Run]:
+        return groups.get((method, reward, horizon, variant), [])
 
     analysis: dict[str, Any] = {
         "runs": [
@@ -309,6 +309,7 @@ def analyze_experiments(
                 "reward": r.reward,
                 "horizon": r.horizon,
                 "seed": r.seed,
+                "variant": r.variant,
                 "total_steps": r.total_steps,
                 "last_step": r.last_step,
                 "complete": r.complete,
@@ -322,7 +323,7 @@ def analyze_experiments(
     }
 
     # Experiment 1: planning horizon (figure 8).
-    exp1 = {f"h={hh}": groups.get(("ppo_mpc", "default", hh), []) for hh in (5, 10, 25)}
+    exp1 = {f"h={hh}": sel("ppo_mpc", horizon=hh) for hh in (5, 10, 25)}
     cmp1 = _comparison(exp1, "h=10")
     cmp1["figure"] = _curves_figure(
         exp1,
@@ -383,6 +384,26 @@ def analyze_experiments(
     analysis["exp4"] = cmp4
 
     analysis["horizon_mse"] = _horizon(world_model_roots) if world_model_roots else None
+
+    # Beyond the thesis: every variant of PPO-MPC and SAC-MPC against the thesis' planner.
+    ablation: dict[str, Any] = {}
+    for method in ("ppo_mpc", "sac_mpc"):
+        named = {
+            (k[3] or "thesis"): v
+            for k, v in groups.items()
+            if k[0] == method and k[1] == "default" and k[2] == h
+        }
+        if len(named) < 2 or "thesis" not in named:
+            continue
+        cmp = _comparison(named, "thesis")
+        cmp["figure"] = _curves_figure(
+            named,
+            out_dir / f"ablation_{method}.png",
+            title=f"{method}: thesis planner vs variants (default reward)",
+            end=cmp["common_step"],
+        )
+        ablation[method] = cmp
+    analysis["ablation"] = ablation
 
     # Verdicts on the research questions (thesis section 1.1).
     q2 = {"verdict": "not run", "why": "needs PPO-MPC and MPC runs"}

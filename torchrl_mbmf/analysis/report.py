@@ -179,6 +179,11 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
             )
     out += ["### Experiment 4: SAC vs SAC-MPC (figure 17)", ""]
     out += _comparison_md(analysis["exp4"], rel, "SAC vs SAC-MPC", THESIS["exp4"])
+    if analysis.get("ablation"):
+        out += ["### Beyond the thesis: planner and model variants", ""]
+        for method, cmp in analysis["ablation"].items():
+            out += [f"#### {method}", ""]
+            out += _comparison_md(cmp, rel, f"{method}: thesis planner vs variants", None)
     out += [
         "### Research questions",
         "",

@@ -48,7 +48,9 @@ class Run:
     path: Path
     config: dict[str, Any]
     summary: dict[str, Any] | None = None
-    _cache: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False, init=False)
+    _cache: dict[str, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict, repr=False, init=False
+    )
 
     @property
     def name(self) -> str:
@@ -69,6 +71,14 @@ class Run:
     def horizon(self) -> int:
         """The planning horizon (meaningful for model-based methods only)."""
         return int(self.config.get("planner", {}).get("horizon", 0))
+
+    @property
+    def variant(self) -> str:
+        """Beyond-the-thesis options of the run (``""`` for the thesis' planner and model)."""
+        from torchrl_mbmf.trainers.config import variant_tag
+
+        tag = variant_tag(self.config.get("planner", {}), self.config.get("world_model", {}))
+        return tag.removeprefix("__")
 
     @property
     def seed(self) -> int:
@@ -168,13 +178,14 @@ def load_runs(roots: str | Path | Iterable[str | Path]) -> list[Run]:
 
 
 def group_runs(
-    runs: Iterable[Run], keys: Sequence[str] = ("method", "reward", "horizon")
+    runs: Iterable[Run], keys: Sequence[str] = ("method", "reward", "horizon", "variant")
 ) -> dict[tuple[Any, ...], list[Run]]:
     """Groups runs that differ only by seed.
 
     Args:
         runs: the runs.
-        keys: :class:`Run` attributes that define a group. Defaults to method, reward, horizon.
+        keys: :class:`Run` attributes that define a group. Defaults to method, reward, horizon
+            and variant.
 
     Returns:
         ``{key tuple: runs sorted by seed}``.

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from omegaconf import OmegaConf
+
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
 
 #: Methods of ``recipes/train.py``.
@@ -14,6 +16,7 @@ MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc")
 PPO_METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc")
 SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
+REFINEMENTS: tuple[str | None, ...] = (None, "cem", "mppi")
 
 
 class ConfigError(ValueError):
@@ -82,6 +85,7 @@ def validate_train_config(cfg: Any) -> None:
         _positive(cfg, key)
     if not 0 < cfg["planner"]["discount"] <= 1:
         raise ConfigError(f"planner.discount must be in (0, 1], got {cfg['planner']['discount']}")
+    _check_planner_variants(cfg, method)
     n_envs = int(cfg["env"]["num_envs"])
     algo = "ppo" if method in PPO_METHODS else "sac"
     frames = int(cfg[algo]["frames_per_batch"])
@@ -110,3 +114,75 @@ def validate_train_config(cfg: Any) -> None:
             f"world_model.random_steps={cfg['world_model']['random_steps']} leaves no steps "
             f"of total_steps={total} for training"
         )
+
+
+def _check_planner_variants(cfg: Any, method: str) -> None:
+    planner = cfg["planner"]
+    value = planner.get("terminal_value", False)
+    if not isinstance(value, bool):
+        raise ConfigError(f"planner.terminal_value must be true or false, got {value!r}")
+    refinement = planner.get("refinement")
+    if refinement not in REFINEMENTS:
+        raise ConfigError(
+            f"planner.refinement={refinement!r} is not supported; allowed: {list(REFINEMENTS)}"
+        )
+    if refinement is None:
+        return
+    if method not in ("ppo_mpc", "sac_mpc"):
+        raise ConfigError(
+            f"planner.refinement={refinement!r} refines around the policy prior; it needs "
+            f"method ppo_mpc or sac_mpc, got method={method!r}"
+        )
+    _positive(cfg, "planner.iterations")
+    elites, m = planner["num_elites"], planner["num_candidates"]
+    if not isinstance(elites, int) or not 1 <= elites <= m:
+        raise ConfigError(
+            f"planner.num_elites must be an integer in [1, planner.num_candidates={m}], "
+            f"got {elites!r}"
+        )
+    if not 0 <= planner["policy_fraction"] < 1:
+        raise ConfigError(
+            f"planner.policy_fraction must be in [0, 1), got {planner['policy_fraction']!r}"
+        )
+    if planner["temperature"] <= 0:
+        raise ConfigError(f"planner.temperature must be > 0, got {planner['temperature']!r}")
+    if planner["min_std"] < 0:
+        raise ConfigError(f"planner.min_std must be >= 0, got {planner['min_std']!r}")
+
+
+def variant_tag(planner: Any, world_model: Any | None = None) -> str:
+    """Run-name suffix naming the beyond-the-thesis options in use (empty for the thesis).
+
+    Registered as the OmegaConf resolver ``mbmf_variant`` so that ``run_name`` separates the
+    variants' run folders: ``${mbmf_variant:${planner},${world_model}}``.
+
+    Args:
+        planner: the ``planner`` config node (or dict).
+        world_model: the ``world_model`` config node (or dict). Defaults to none.
+
+    Returns:
+        ``""`` for the thesis' settings, otherwise ``"__"`` and the options joined by ``-``.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.config import variant_tag
+        >>> variant_tag({"terminal_value": False, "refinement": None})
+        ''
+        >>> variant_tag({"terminal_value": True, "refinement": "cem"})
+        '__value-cem'
+    """
+    parts = []
+    if planner.get("terminal_value", False):
+        parts.append("value")
+    if planner.get("refinement"):
+        parts.append(str(planner["refinement"]))
+    wm = world_model or {}
+    if int(wm.get("ensemble_size", 1) or 1) > 1:
+        parts.append(f"ens{int(wm['ensemble_size'])}")
+    if wm.get("adaptive_horizon", False):
+        parts.append("adaptive")
+    if int(wm.get("multi_step", 1) or 1) > 1:
+        parts.append(f"ms{int(wm['multi_step'])}")
+    return "__" + "-".join(parts) if parts else ""
+
+
+OmegaConf.register_new_resolver("mbmf_variant", variant_tag, replace=True)

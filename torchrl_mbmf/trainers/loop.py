@@ -37,7 +37,11 @@ from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.modules.planners import PolicyGuidedMPCPlanner, RandomShootingMPCPlanner
+from torchrl_mbmf.modules.planners import (
+    MinQValue,
+    PolicyGuidedMPCPlanner,
+    RandomShootingMPCPlanner,
+)
 from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_train_config
 from torchrl_mbmf.trainers.dynamics import fit_dynamics
 from torchrl_mbmf.trainers.export import save_policy
@@ -308,9 +312,26 @@ class Trainer:
             "horizon": int(p.horizon),
             "discount": float(p.discount),
         }
+        if p.get("terminal_value", False):
+            # PPO: the critic V(s_h) (the loss trains this module's own parameters); SAC: the
+            # min over the loss' Q-networks at the actor's action.
+            kwargs["value_module"] = (
+                self.critic
+                if self.method in PPO_METHODS
+                else MinQValue(self.actor, self.critic, self.loss.qvalue_network_params)
+            )
         if self.method == "mpc":
             self.planner = RandomShootingMPCPlanner(model_env, actor=self.actor, **kwargs)
         else:
+            if p.get("refinement"):
+                kwargs.update(
+                    refinement=str(p.refinement),
+                    iterations=int(p.iterations),
+                    num_elites=int(p.num_elites),
+                    policy_fraction=float(p.policy_fraction),
+                    temperature=float(p.temperature),
+                    min_std=float(p.min_std),
+                )
             self.planner = PolicyGuidedMPCPlanner(model_env, self.actor, **kwargs)
 
     def _make_checkpoint(self) -> Checkpoint:

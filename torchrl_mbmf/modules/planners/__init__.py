@@ -10,10 +10,12 @@ from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
 from torchrl_mbmf.modules.planners.random_shooting import RandomShootingMPCPlanner
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
+from torchrl_mbmf.modules.planners.values import MinQValue
 
 __all__ = [
     "ActorSampler",
     "CachedModelStep",
+    "MinQValue",
     "Plan",
     "PolicyGuidedMPCPlanner",
     "RandomShootingMPCPlanner",
