@@ -1,3 +1,4 @@
+from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
 from torchrl_mbmf.envs.factory import env_metadata, make_env
 from torchrl_mbmf.envs.gym_state import make_gym_state_env
 from torchrl_mbmf.envs.half_cheetah import HALF_CHEETAH_ID, make_half_cheetah_env
@@ -32,6 +33,7 @@ __all__ = [
     "REWARDS",
     "STATE_KEY",
     "DefaultReward",
+    "EnsembleLearnedDynamicsEnv",
     "HeadPenReward",
     "LearnedDynamicsEnv",
     "PhysicsInfo",

@@ -1,9 +1,16 @@
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.modules.planners import PolicyGuidedMPCPlanner, RandomShootingMPCPlanner
+from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
+from torchrl_mbmf.modules.planners import (
+    EnsemblePolicyGuidedPlanner,
+    PolicyGuidedMPCPlanner,
+    RandomShootingMPCPlanner,
+)
 
 __all__ = [
     "DeltaDynamicsModel",
+    "EnsembleDeltaDynamicsModel",
+    "EnsemblePolicyGuidedPlanner",
     "PolicyGuidedMPCPlanner",
     "RandomShootingMPCPlanner",
     "make_ppo_actor_critic",

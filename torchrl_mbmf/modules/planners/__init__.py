@@ -6,6 +6,7 @@ from torchrl_mbmf.modules.planners.common import (
     gather_candidate,
     select_best,
 )
+from torchrl_mbmf.modules.planners.ensemble_guided import EnsemblePlan, EnsemblePolicyGuidedPlanner
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
 from torchrl_mbmf.modules.planners.random_shooting import RandomShootingMPCPlanner
@@ -15,6 +16,8 @@ from torchrl_mbmf.modules.planners.values import MinQValue
 __all__ = [
     "ActorSampler",
     "CachedModelStep",
+    "EnsemblePlan",
+    "EnsemblePolicyGuidedPlanner",
     "MinQValue",
     "Plan",
     "PolicyGuidedMPCPlanner",
