@@ -172,3 +172,15 @@ def test_report_refuses_a_missing_analysis(tmp_path):
         timeout=120,
     )
     assert proc.returncode != 0 and f"no analysis.json for ['{tmp_path}']" in proc.stderr
+
+
+def test_a_run_found_under_two_roots_counts_once_the_longest(tmp_path):
+    make_run(tmp_path / "a", "ppo", 0, [1.0, 2.0], total_steps=5000)  # interrupted copy
+    make_run(tmp_path / "b", "ppo", 0, [1.0, 2.0, 3.0, 4.0, 5.0])  # finished
+    runs = load_runs([tmp_path / "a", tmp_path / "b"])
+    assert len(runs) == 1 and runs[0].complete and runs[0].last_step == 5000
+    assert len(load_runs([tmp_path / "a", tmp_path / "b"], dedupe=False)) == 2
+    analysis = analyze_experiments([tmp_path / "a", tmp_path / "b"], tmp_path / "out", gait=False)
+    assert analysis["superseded_runs"] == [
+        {"name": "Env__ppo__default__h10__seed0", "last_step": 2000, "complete": False}
+    ]

@@ -209,7 +209,8 @@ def collect_runs(runs: Iterable[Run], dest: str | Path, *, max_file_bytes: int =
     dest = Path(dest)
     copied = 0
     for run in runs:
-        files = [run.path / n for n in ("config.yaml", "summary.json", "git_commit.txt")]
+        names = ("config.yaml", "summary.json", "git_commit.txt", "machine.json")
+        files = [run.path / n for n in names]
         files += [run.path / "policy.pt", run.path / "train.log"]
         files += sorted((run.path / "logs" / "scalars").rglob("*.csv"))
         for f in files:
@@ -295,6 +296,11 @@ def analyze_experiments(
     runs = load_runs(run_roots)
     if not runs:
         raise FileNotFoundError(f"no training run folders under {list(map(str, run_roots))}")
+    superseded = [
+        {"name": r.name, "last_step": r.last_step, "complete": r.complete}
+        for r in load_runs(run_roots, dedupe=False)
+        if not any(r.path == k.path for k in runs)
+    ]
     groups = group_runs(runs)
     h = DEFAULT_HORIZON
 
@@ -302,6 +308,7 @@ def analyze_experiments(
         return groups.get((method, reward, horizon, variant), [])
 
     analysis: dict[str, Any] = {
+        "superseded_runs": superseded,
         "runs": [
             {
                 "name": r.name,
@@ -317,9 +324,11 @@ def analyze_experiments(
                 "last10_mean_return": (final_values([r]) or [None])[0],
                 "final_eval_return": (final_values([r], "eval/return") or [None])[0],
                 "seconds": (r.summary or {}).get("seconds"),
+                "commit": r.commit,
+                "machine": r.machine,
             }
             for r in runs
-        ]
+        ],
     }
 
     # Experiment 1: planning horizon (figure 8).

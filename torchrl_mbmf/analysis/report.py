@@ -100,17 +100,29 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
         "### Runs",
         "",
         "| run | steps reached / budget | random-data steps | last-10 mean return "
-        "| eval return | hours |",
-        "|---|---|---|---|---|---|",
+        "| eval return | hours | commit | machine |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         done = "" if r["complete"] else " (partial)"
         hours = "-" if r["seconds"] is None else f"{r['seconds'] / 3600:.2f}"
+        m = r.get("machine") or {}
+        machine = f"{m['cpu_count']} CPUs, Python {m['python']}, torch {m['torch']}" if m else "-"
         out.append(
             f"| {r['name']} | {r['last_step']:,} / {r['total_steps']:,}{done} | "
             f"{r['random_steps']:,} | {_fmt(r['last10_mean_return'])} | "
-            f"{_fmt(r['final_eval_return'])} | {hours} |"
+            f"{_fmt(r['final_eval_return'])} | {hours} | `{r.get('commit', '-')[:7]}` | "
+            f"{machine} |"
         )
+    if analysis.get("superseded_runs"):
+        names = ", ".join(
+            f"{s['name']} ({s['last_step']:,} steps)" for s in analysis["superseded_runs"]
+        )
+        out += [
+            "",
+            "Runs found more than once (an interrupted copy beside a longer one) count once, "
+            f"the longest; left out: {names}.",
+        ]
     out.append("")
     out += ["### Experiment 1: planning horizon (figure 8)", ""]
     out += _comparison_md(analysis["exp1"], rel, "PPO-MPC with h = 5, 10, 25", THESIS["exp1"])

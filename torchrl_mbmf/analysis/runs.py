@@ -113,6 +113,18 @@ class Run:
         return self.random_steps + int(self.config["planning_updates"]) * frames
 
     @property
+    def commit(self) -> str:
+        """The git commit the run's code came from (``"unknown"`` if not recorded)."""
+        path = self.path / "git_commit.txt"
+        return path.read_text().strip() if path.exists() else "unknown"
+
+    @property
+    def machine(self) -> dict[str, Any]:
+        """``machine.json``: Python, torch and torchrl versions, CPU count (empty if absent)."""
+        path = self.path / "machine.json"
+        return json.loads(path.read_text()) if path.exists() else {}
+
+    @property
     def last_step(self) -> int:
         """The last real step the run logged (its progress if interrupted)."""
         if self.summary is not None:
@@ -138,11 +150,16 @@ class Run:
         return self._cache[name]
 
 
-def load_runs(roots: str | Path | Iterable[str | Path]) -> list[Run]:
+def load_runs(roots: str | Path | Iterable[str | Path], *, dedupe: bool = True) -> list[Run]:
     r"""Finds every run folder (one with ``config.yaml`` and ``logs/scalars``) under ``roots``.
 
     Args:
         roots: one folder or several, searched recursively.
+
+    Keyword Args:
+        dedupe: when the same run (folder name) is found under several roots, keep only the
+            one that got furthest (finished runs first, then the most real steps). Defaults to
+            ``True``.
 
     Returns:
         The runs, sorted by folder name.
@@ -174,6 +191,13 @@ def load_runs(roots: str | Path | Iterable[str | Path]) -> list[Run]:
             summary_path = folder / "summary.json"
             summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
             runs.append(Run(folder, config, summary))
+    if dedupe:
+        best: dict[str, Run] = {}
+        for run in runs:
+            kept = best.get(run.name)
+            if kept is None or (run.complete, run.last_step) > (kept.complete, kept.last_step):
+                best[run.name] = run
+        runs = list(best.values())
     return sorted(runs, key=lambda r: r.name)
 
 

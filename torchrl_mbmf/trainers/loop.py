@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import random
 import subprocess
 import time
@@ -70,6 +71,22 @@ def _fingerprint(cfg: Any) -> dict[str, Any]:
     if cfg.method in ("mpc", "ppo_mpc"):
         fingerprint["planning_updates"] = int(cfg.planning_updates)
     return fingerprint
+
+
+def _machine() -> dict[str, Any]:
+    """Software and hardware a run ran on (written beside its config)."""
+    import platform
+
+    import torchrl
+
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torchrl": torchrl.__version__,
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        "torch_threads": torch.get_num_threads(),
+    }
 
 
 def _git_commit() -> str:
@@ -230,6 +247,7 @@ class Trainer:
         self.resumed = self._maybe_resume()
         (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
         (self.run_dir / "git_commit.txt").write_text(_git_commit() + "\n")
+        (self.run_dir / "machine.json").write_text(json.dumps(_machine(), indent=2) + "\n")
 
     # ------------------------------------------------------------ building
     def _make_env(self, seed: int, num_envs: int | None = None) -> EnvBase:
