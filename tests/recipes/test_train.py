@@ -73,6 +73,15 @@ def test_every_config_composes(group):
         ("sac_mpc", []),
         ("ppo_mpc", ["planner.terminal_value=true", "planner.refinement=cem"]),
         ("sac_mpc", ["planner.terminal_value=true", "planner.refinement=mppi"]),
+        ("mpc", ["world_model.multi_step=3"]),
+        (
+            "ppo_mpc",
+            [
+                "world_model.ensemble_size=3",
+                "world_model.adaptive_horizon=true",
+                "planner.terminal_value=true",
+            ],
+        ),
     ],
 )
 def test_method_smoke_run(tmp_path, method, extra):
@@ -92,6 +101,12 @@ def test_method_smoke_run(tmp_path, method, extra):
     assert (scalars / "eval" / "return.csv").exists()
     if method != "ppo" and method != "sac":
         assert (scalars / "model" / "val_loss.csv").exists()
+    if "world_model.adaptive_horizon=true" in extra:
+        threshold = (scalars / "model" / "disagreement_threshold.csv").read_text().split()
+        assert threshold and all(float(row.split(",")[1]) > 0 for row in threshold)
+        horizon = (scalars / "planner" / "effective_horizon.csv").read_text().split()
+        assert all(0 <= float(row.split(",")[1]) <= 10 for row in horizon)
+    assert (run / "machine.json").exists() and (run / "policy.pt").exists()
     assert any((run / "checkpoints").iterdir())
 
 
@@ -136,6 +151,18 @@ def test_half_cheetah_ppo_mpc_tiny(tmp_path):
         (["planner.refinement=cem", "planner.num_elites=16"], "planner.num_elites must be"),
         (["planner.refinement=mppi", "planner.temperature=0"], "planner.temperature must be"),
         (["planner.terminal_value=maybe"], "planner.terminal_value must be true or false"),
+        (["world_model.ensemble_size=0"], "world_model.ensemble_size must be an integer >= 1"),
+        (["world_model.multi_step=0"], "world_model.multi_step"),
+        (
+            ["world_model.ensemble_size=3", "world_model.multi_step=3"],
+            "world_model.multi_step > 1 is implemented for the single model only",
+        ),
+        (["method=mpc", "world_model.ensemble_size=3"], "needs method ppo_mpc or sac_mpc"),
+        (["world_model.adaptive_horizon=true"], "adaptive_horizon needs an ensemble"),
+        (
+            ["world_model.ensemble_size=3", "planner.refinement=cem"],
+            "planner.refinement is not supported with world_model.ensemble_size > 1",
+        ),
     ],
 )
 def test_bad_config_fails_before_work(overrides, message):
@@ -148,6 +175,8 @@ def test_variants_get_their_own_run_folders():
     assert _compose().run_name == "HalfCheetah-v5__ppo_mpc__default__h10__seed0"
     cfg = _compose("planner.terminal_value=true", "planner.refinement=cem", "seed=2")
     assert cfg.run_name == "HalfCheetah-v5__ppo_mpc__default__h10__value-cem__seed2"
+    cfg = _compose("world_model.ensemble_size=5", "world_model.adaptive_horizon=true")
+    assert cfg.run_name == "HalfCheetah-v5__ppo_mpc__default__h10__ens5-adaptive__seed0"
 
 
 def test_bad_config_subprocess_message(tmp_path):

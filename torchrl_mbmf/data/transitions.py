@@ -49,6 +49,76 @@ def _done_of(batch: TensorDictBase) -> torch.Tensor:
     return done.reshape(batch.batch_size)
 
 
+def consecutive_windows(
+    traj_ids: torch.Tensor,
+    done: torch.Tensor,
+    state: torch.Tensor,
+    next_state: torch.Tensor,
+    length: int,
+) -> torch.Tensor:
+    """Row indices of every run of ``length`` consecutive transitions inside one episode.
+
+    Rows are put in time order within each episode by a stable sort on ``traj_ids`` (the
+    storage order of one episode is its time order). Row ``j`` is followed by row ``j'`` in a
+    window only if all three hold:
+
+    * both carry the same trajectory id;
+    * row ``j`` is not done (done, terminated or truncated: after it the env was reset);
+    * row ``j``'s next state equals row ``j'``'s state exactly. A
+      :class:`TransitionDataset` continues an episode id across ``extend`` calls unless the
+      last step was done, so an env that was reset between two batches without a done flag
+      (e.g. a new collector, which resets its env) would otherwise be joined to the episode
+      before it; this check cuts such joins.
+
+    The last transition of a window may be done: its next state is still the real one.
+
+    Args:
+        traj_ids: episode id of each row ``[N]``.
+        done: done flag of each row ``[N]`` or ``[N, 1]``.
+        state: state of each row ``[N, ...]``.
+        next_state: next state of each row ``[N, ...]``.
+        length: transitions per window (``>= 1``).
+
+    Returns:
+        A ``[W, length]`` long tensor of row indices, each row in time order; with
+        ``length == 1`` every row is a window.
+
+    Raises:
+        ValueError: if ``length < 1``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.data.transitions import consecutive_windows
+        >>> state = torch.arange(6.0)[:, None]
+        >>> done = torch.tensor([False, False, True, False, False, False])
+        >>> consecutive_windows(torch.tensor([0, 0, 0, 1, 1, 1]), done, state, state + 1, 2)
+        tensor([[0, 1],
+                [1, 2],
+                [3, 4],
+                [4, 5]])
+    """
+    if length < 1:
+        raise ValueError(f"window length must be >= 1, got {length}")
+    traj_ids = traj_ids.reshape(-1)
+    n = traj_ids.numel()
+    order = torch.sort(traj_ids, stable=True).indices
+    if length == 1:
+        return order[:, None]
+    if n < length:
+        return torch.empty(0, length, dtype=torch.long)
+    cur, nxt = order[:-1], order[1:]
+    link = (
+        (traj_ids[cur] == traj_ids[nxt])
+        & ~done.reshape(-1)[cur].bool()
+        & (next_state[cur] == state[nxt]).reshape(n - 1, -1).all(-1)
+    )
+    # broken[j]: how many of the links between positions 0..j are broken
+    broken = torch.cat([torch.zeros(1, dtype=torch.long), (~link).long().cumsum(0)])
+    starts = torch.arange(n - length + 1)
+    starts = starts[broken[starts + length - 1] == broken[starts]]
+    return order[starts[:, None] + torch.arange(length)]
+
+
 class TransitionDataset:
     """All real transitions ``(s, a, r, s')`` of a run, in a replay buffer stored on disk.
 
@@ -211,6 +281,36 @@ class TransitionDataset:
         order = torch.sort(ids, stable=True).indices
         counts = torch.unique_consecutive(ids[order], return_counts=True)[1]
         return list(torch.split(order, counts.tolist()))
+
+    def windows(self, length: int) -> torch.Tensor:
+        """Row indices of every ``length`` consecutive transitions inside one episode.
+
+        For multi-step model losses. Relies on the stored trajectory ids and
+        ``("next", "done")`` flags and checks that each step's next state is the following
+        step's state (see :func:`consecutive_windows`), so no window crosses a done, a
+        truncation or a reset between two ``extend`` calls.
+
+        Args:
+            length: transitions per window (``>= 1``).
+
+        Returns:
+            A ``[W, length]`` long tensor of row indices of :meth:`tensors`, in time order.
+
+        Examples:
+            >>> from torchrl_mbmf.data import collect_random_transitions
+            >>> from torchrl_mbmf.envs import make_gym_state_env
+            >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 250, seed=0)
+            >>> data.windows(5).shape  # episodes of 200 and 50 steps: 196 + 46 windows
+            torch.Size([242, 5])
+        """
+        td = self.tensors()
+        return consecutive_windows(
+            td.get(TRAJ_KEY),
+            td.get(("next", "done")),
+            td.get(self.state_key),
+            td.get(("next", self.state_key)),
+            length,
+        )
 
     def _checksum(self) -> str:
         digest = hashlib.sha256()

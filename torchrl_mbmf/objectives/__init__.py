@@ -1,3 +1,3 @@
-from torchrl_mbmf.objectives.dynamics_loss import DynamicsLoss
+from torchrl_mbmf.objectives.dynamics_loss import DynamicsLoss, MultiStepDynamicsLoss
 
-__all__ = ["DynamicsLoss"]
+__all__ = ["DynamicsLoss", "MultiStepDynamicsLoss"]

@@ -1,7 +1,8 @@
-"""One-step world-model loss (thesis eq. 17) as a TorchRL loss module."""
+"""World-model losses as TorchRL loss modules: one-step (thesis eq. 17) and multi-step."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -165,6 +166,91 @@ class DynamicsLoss(LossModule):
         target = self.world_model.scale_targets(state, next_state, reward)
         return (prediction - target).pow(2)
 
+    def rollout_squared_errors(
+        self,
+        state: torch.Tensor,
+        actions: torch.Tensor,
+        next_states: torch.Tensor,
+        rewards: torch.Tensor,
+    ) -> torch.Tensor:
+        """Squared errors ``[..., k, state_dim + 1]`` of a ``k``-step open-loop rollout.
+
+        The model starts at the real ``state`` and is fed the real ``actions``; from step 2 on
+        its input is its own previous prediction, and gradients flow back through the whole
+        rollout. At step ``t`` the predicted normalised delta is the one from the real
+        previous state ``s_{t-1}`` to the predicted ``ŝ_t``, compared with the real one:
+        ``((ŝ_t - s_{t-1} - delta_loc) - (s_t - s_{t-1} - delta_loc)) / delta_scale``, i.e. the
+        open-loop state error in delta-scaled units; the reward error is that of the reward
+        predicted from ``ŝ_{t-1}``, in reward-scaled units. Step 1 is exactly the one-step
+        error of :meth:`squared_errors` (up to float rounding).
+
+        Args:
+            state: real start states ``[..., state_dim]``.
+            actions: real actions ``[..., k, action_dim]``.
+            next_states: real next states ``[..., k, state_dim]``.
+            rewards: real rewards ``[..., k]`` or ``[..., k, 1]``.
+
+        Returns:
+            The squared errors, scaled delta first and scaled reward last.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+            >>> from torchrl_mbmf.objectives import DynamicsLoss
+            >>> loss = DynamicsLoss(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
+            >>> loss.rollout_squared_errors(torch.zeros(5, 3), torch.zeros(5, 4, 1),
+            ...                             torch.ones(5, 4, 3), torch.zeros(5, 4)).shape
+            torch.Size([5, 4, 4])
+        """
+        wm = self.world_model
+        k = actions.shape[-2]
+        if next_states.shape[:-1] != actions.shape[:-1]:
+            raise ValueError(
+                f"next_states batch {tuple(next_states.shape[:-1])} and actions batch "
+                f"{tuple(actions.shape[:-1])} differ"
+            )
+        rewards = rewards.reshape(*actions.shape[:-1], 1)
+        errors = []
+        predicted = state
+        for t in range(k):
+            output = wm.predict_scaled(predicted, actions[..., t, :])
+            predicted, _ = wm.unscale(predicted, output)
+            state_err = (predicted - next_states[..., t, :]) / wm.delta_scale
+            reward_err = output[..., -1:] - (rewards[..., t, :] - wm.reward_loc) / wm.reward_scale
+            errors.append(torch.cat([state_err, reward_err], -1).pow(2))
+        return torch.stack(errors, -2)
+
+    def multi_step_loss(
+        self,
+        state: torch.Tensor,
+        actions: torch.Tensor,
+        next_states: torch.Tensor,
+        rewards: torch.Tensor,
+    ) -> torch.Tensor:
+        """Mean over the ``k`` steps and all outputs of :meth:`rollout_squared_errors`.
+
+        With ``k == 1`` this is the one-step loss (eq. 17) of the same transitions.
+
+        Args:
+            state: real start states ``[..., state_dim]``.
+            actions: real actions ``[..., k, action_dim]``.
+            next_states: real next states ``[..., k, state_dim]``.
+            rewards: real rewards ``[..., k]`` or ``[..., k, 1]``.
+
+        Returns:
+            The scalar loss (differentiable through the rollout).
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+            >>> from torchrl_mbmf.objectives import DynamicsLoss
+            >>> loss = DynamicsLoss(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
+            >>> loss.multi_step_loss(torch.zeros(5, 3), torch.zeros(5, 4, 1),
+            ...                      torch.ones(5, 4, 3), torch.zeros(5, 4)).shape
+            torch.Size([])
+        """
+        return self.rollout_squared_errors(state, actions, next_states, rewards).mean()
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Computes the losses of a batch of transitions.
 
@@ -186,3 +272,147 @@ class DynamicsLoss(LossModule):
             loss_delta=err[..., :-1].mean().detach(),
             loss_reward=err[..., -1].mean().detach(),
         )
+
+
+class MultiStepDynamicsLoss(DynamicsLoss):
+    """One-step loss plus a ``k``-step open-loop rollout loss on windows of real transitions.
+
+    The thesis trains the model on one-step targets only, while its planner rolls the model
+    10 steps open loop, so one-step errors compound unchecked. This loss adds the
+    multi-step term of :meth:`DynamicsLoss.multi_step_loss`: from the first real state of a
+    window of ``k`` consecutive transitions of one episode (see
+    :meth:`~torchrl_mbmf.data.TransitionDataset.windows`), the model is rolled open loop with
+    the window's real actions, and the mean over the ``k`` steps of the squared error of the
+    normalised deltas and rewards is added, weighted by ``multi_step_weight``, to the one-step
+    loss of all the window's transitions:
+    ``loss_dynamics = loss_one_step + multi_step_weight * loss_multi_step``. Gradients flow
+    through the rollout, in the spirit of Venkatraman et al., "Improving Multi-step
+    Prediction of Learned Time Series Models" (AAAI 2015) and PlaNet's overshooting (Hafner
+    et al., 2019).
+
+    The input is a ``[B, k]`` TensorDict of windows (time is the last batch dimension), such
+    as ``dataset.tensors()[dataset.windows(k)]``; its keys are those of
+    :class:`DynamicsLoss` (``loss.set_keys(...)``).
+
+    Args:
+        world_model: the model to train.
+
+    Keyword Args:
+        multi_step_weight: weight of the multi-step term (``>= 0``). Defaults to ``1.0``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+        >>> from torchrl_mbmf.objectives import MultiStepDynamicsLoss
+        >>> loss = MultiStepDynamicsLoss(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
+        >>> windows = TensorDict(state=torch.randn(4, 5, 3), action=torch.rand(4, 5, 1),
+        ...                      next=TensorDict(state=torch.randn(4, 5, 3),
+        ...                                      reward=torch.randn(4, 5, 1),
+        ...                                      batch_size=[4, 5]), batch_size=[4, 5])
+        >>> sorted(loss(windows).keys())
+        ['loss_delta', 'loss_dynamics', 'loss_multi_step', 'loss_one_step', 'loss_reward']
+    """
+
+    def __init__(self, world_model: DeltaDynamicsModel, *, multi_step_weight: float = 1.0) -> None:
+        super().__init__(world_model)
+        self.multi_step_weight = check_multi_step_weight(multi_step_weight)
+
+    @property
+    def out_keys(self) -> list[str]:
+        """Keys written by :meth:`forward`."""
+        return ["loss_dynamics", "loss_one_step", "loss_multi_step", "loss_delta", "loss_reward"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Computes the losses of a batch of windows.
+
+        Args:
+            tensordict: ``[B, k]`` windows of consecutive transitions with the keys of
+                :attr:`in_keys`.
+
+        Returns:
+            ``loss_dynamics`` (differentiable); ``loss_one_step`` and ``loss_multi_step``
+            (detached) are its two terms, ``loss_delta`` and ``loss_reward`` (detached)
+            split the multi-step term.
+        """
+        if tensordict.batch_dims < 2:
+            raise ValueError(
+                f"expects [..., k] windows of transitions, got batch {tuple(tensordict.batch_size)}"
+            )
+        k = self.tensor_keys
+        state = tensordict.get(k.state)
+        action = tensordict.get(k.action)
+        next_state = tensordict.get(k.next_state)
+        reward = tensordict.get(k.reward)
+        one_step = self.squared_errors(state, action, next_state, reward).mean()
+        err = self.rollout_squared_errors(state[..., 0, :], action, next_state, reward)
+        multi_step = err.mean()
+        return TensorDict(
+            loss_dynamics=one_step + self.multi_step_weight * multi_step,
+            loss_one_step=one_step.detach(),
+            loss_multi_step=multi_step.detach(),
+            loss_delta=err[..., :-1].mean().detach(),
+            loss_reward=err[..., -1].mean().detach(),
+        )
+
+
+def check_multi_step(multi_step: int, *, key: str = "multi_step") -> int:
+    """Validates a multi-step horizon ``k`` (an integer ``>= 1``; ``1`` turns the term off).
+
+    Args:
+        multi_step: the value.
+
+    Keyword Args:
+        key: the name used in the error message. Defaults to ``"multi_step"``.
+
+    Returns:
+        ``multi_step`` as an ``int``.
+
+    Raises:
+        ValueError: naming ``key`` if the value is not an integer ``>= 1``.
+
+    Examples:
+        >>> from torchrl_mbmf.objectives.dynamics_loss import check_multi_step
+        >>> check_multi_step(5)
+        5
+        >>> try:
+        ...     check_multi_step(0, key="world_model.multi_step")
+        ... except ValueError as err:
+        ...     print(err)
+        world_model.multi_step must be an integer >= 1 (1 = one-step loss only), got 0
+    """
+    if isinstance(multi_step, bool) or not isinstance(multi_step, int) or multi_step < 1:
+        raise ValueError(
+            f"{key} must be an integer >= 1 (1 = one-step loss only), got {multi_step!r}"
+        )
+    return int(multi_step)
+
+
+def check_multi_step_weight(weight: float, *, key: str = "multi_step_weight") -> float:
+    """Validates the weight of the multi-step term (a finite number ``>= 0``).
+
+    Args:
+        weight: the value.
+
+    Keyword Args:
+        key: the name used in the error message. Defaults to ``"multi_step_weight"``.
+
+    Returns:
+        ``weight`` as a ``float``.
+
+    Raises:
+        ValueError: naming ``key`` if the value is negative, not finite or not a number.
+
+    Examples:
+        >>> from torchrl_mbmf.objectives.dynamics_loss import check_multi_step_weight
+        >>> check_multi_step_weight(1)
+        1.0
+    """
+    if (
+        isinstance(weight, bool)
+        or not isinstance(weight, int | float)
+        or not math.isfinite(weight)
+        or weight < 0
+    ):
+        raise ValueError(f"{key} must be a finite number >= 0, got {weight!r}")
+    return float(weight)

@@ -86,6 +86,7 @@ def validate_train_config(cfg: Any) -> None:
     if not 0 < cfg["planner"]["discount"] <= 1:
         raise ConfigError(f"planner.discount must be in (0, 1], got {cfg['planner']['discount']}")
     _check_planner_variants(cfg, method)
+    _check_world_model_variants(cfg, method)
     n_envs = int(cfg["env"]["num_envs"])
     algo = "ppo" if method in PPO_METHODS else "sac"
     frames = int(cfg[algo]["frames_per_batch"])
@@ -148,6 +149,47 @@ def _check_planner_variants(cfg: Any, method: str) -> None:
         raise ConfigError(f"planner.temperature must be > 0, got {planner['temperature']!r}")
     if planner["min_std"] < 0:
         raise ConfigError(f"planner.min_std must be >= 0, got {planner['min_std']!r}")
+
+
+def _check_world_model_variants(cfg: Any, method: str) -> None:
+    from torchrl_mbmf.trainers.dynamics import fit_dynamics_kwargs
+
+    wm = cfg["world_model"]
+    try:
+        kwargs = fit_dynamics_kwargs(wm)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(str(err)) from err
+    members = wm.get("ensemble_size", 1)
+    if isinstance(members, bool) or not isinstance(members, int) or members < 1:
+        raise ConfigError(f"world_model.ensemble_size must be an integer >= 1, got {members!r}")
+    adaptive = wm.get("adaptive_horizon", False)
+    if not isinstance(adaptive, bool):
+        raise ConfigError(f"world_model.adaptive_horizon must be true or false, got {adaptive!r}")
+    if members > 1 and method not in ("ppo_mpc", "sac_mpc"):
+        raise ConfigError(
+            f"world_model.ensemble_size={members} plans with the ensemble policy-guided planner; "
+            f"it needs method ppo_mpc or sac_mpc, got method={method!r}"
+        )
+    if members > 1 and cfg["planner"].get("refinement"):
+        raise ConfigError(
+            "planner.refinement is not supported with world_model.ensemble_size > 1; set one "
+            "of them back (planner.refinement=null or world_model.ensemble_size=1)"
+        )
+    if members > 1 and kwargs["multi_step"] > 1:
+        raise ConfigError(
+            "world_model.multi_step > 1 is implemented for the single model only; set "
+            "world_model.ensemble_size=1 or world_model.multi_step=1"
+        )
+    if adaptive and members < 2:
+        raise ConfigError(
+            "world_model.adaptive_horizon needs an ensemble (world_model.ensemble_size >= 2), "
+            f"got ensemble_size={members}"
+        )
+    if adaptive and not 0 < wm.get("disagreement_quantile", 0.9) < 1:
+        raise ConfigError(
+            "world_model.disagreement_quantile must be in (0, 1), got "
+            f"{wm.get('disagreement_quantile')!r}"
+        )
 
 
 def variant_tag(planner: Any, world_model: Any | None = None) -> str:

@@ -42,6 +42,8 @@ class EnsembleFitHistory:
         bootstrap: whether each member trained on its own bootstrap resample.
         unique_fraction: per member, the share of distinct training transitions in its
             bootstrap sample (about 0.632 for large splits; 1.0 without bootstrap).
+        val_indices: indices (into the fitted data) of the held-out split, which no member
+            trained on: the data to calibrate the disagreement threshold on. Not serialised.
 
     Examples:
         >>> from torchrl_mbmf.trainers.ensemble_fit import EnsembleFitHistory
@@ -62,6 +64,7 @@ class EnsembleFitHistory:
     num_members: int = 0
     bootstrap: bool = True
     unique_fraction: list[float] = field(default_factory=list)
+    val_indices: torch.Tensor | None = field(default=None, repr=False)
 
     @property
     def epochs(self) -> int:
@@ -70,7 +73,8 @@ class EnsembleFitHistory:
 
     def to_dict(self) -> dict[str, object]:
         """JSON-serialisable form."""
-        return {**asdict(self), "epochs": self.epochs}
+        out = {k: v for k, v in asdict(self).items() if k != "val_indices"}
+        return {**out, "epochs": self.epochs}
 
 
 def _member_mse(
@@ -207,6 +211,7 @@ def fit_ensemble(
         num_members=k,
         bootstrap=bool(bootstrap),
         unique_fraction=unique,
+        val_indices=val_idx,
     )
 
     member_val = _member_mse(model, val_x, val_y)

@@ -33,18 +33,22 @@ from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
 from torchrl_mbmf.data.transitions import TransitionDataset
+from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
 from torchrl_mbmf.envs.factory import env_metadata, make_env
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 from torchrl_mbmf.modules.planners import (
+    EnsemblePolicyGuidedPlanner,
     MinQValue,
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
 from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_train_config
-from torchrl_mbmf.trainers.dynamics import fit_dynamics
+from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fit_dynamics_kwargs
+from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
 from torchrl_mbmf.trainers.ppo import ppo_update
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
@@ -67,6 +71,9 @@ def _fingerprint(cfg: Any) -> dict[str, Any]:
     if cfg.method in MODEL_BASED:
         fingerprint["world_model.hidden_sizes"] = list(cfg.world_model.hidden_sizes)
         fingerprint["world_model.random_steps"] = int(cfg.world_model.random_steps)
+        for key in ("ensemble_size", "probabilistic", "multi_step", "multi_step_weight"):
+            if key in cfg.world_model:
+                fingerprint[f"world_model.{key}"] = cfg.world_model[key]
         fingerprint["planner"] = OmegaConf.to_container(cfg.planner, resolve=True)
     if cfg.method in ("mpc", "ppo_mpc"):
         fingerprint["planning_updates"] = int(cfg.planning_updates)
@@ -318,12 +325,24 @@ class Trainer:
         cfg = self.cfg
         state_dim = self.env.full_observation_spec_unbatched[STATE_KEY].shape[-1]
         action_dim = self.env.full_action_spec_unbatched[self.env.action_key].shape[-1]
-        self.model = DeltaDynamicsModel(
-            state_dim, action_dim, hidden_sizes=tuple(cfg.world_model.hidden_sizes)
-        )
-        self.model_optim = torch.optim.Adam(self.model.parameters(), lr=float(cfg.world_model.lr))
+        wm = cfg.world_model
+        members = int(wm.get("ensemble_size", 1) or 1)
+        if members > 1:
+            self.model = EnsembleDeltaDynamicsModel(
+                state_dim,
+                action_dim,
+                num_members=members,
+                hidden_sizes=tuple(wm.hidden_sizes),
+                probabilistic=bool(wm.get("probabilistic", False)),
+            )
+            model_env = EnsembleLearnedDynamicsEnv(self.model, self.env)
+        else:
+            self.model = DeltaDynamicsModel(
+                state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes)
+            )
+            model_env = LearnedDynamicsEnv(self.model, self.env)
+        self.model_optim = torch.optim.Adam(self.model.parameters(), lr=float(wm.lr))
         self.dataset = TransitionDataset({**env_metadata(self.env), "seed": int(cfg.seed)})
-        model_env = LearnedDynamicsEnv(self.model, self.env)
         p = cfg.planner
         kwargs = {
             "num_candidates": int(p.num_candidates),
@@ -350,7 +369,12 @@ class Trainer:
                     temperature=float(p.temperature),
                     min_std=float(p.min_std),
                 )
-            self.planner = PolicyGuidedMPCPlanner(model_env, self.actor, **kwargs)
+            if members > 1:
+                # Candidate i rolls in member i mod K; with world_model.adaptive_horizon the
+                # threshold is calibrated at every refit (None until the first one).
+                self.planner = EnsemblePolicyGuidedPlanner(model_env, self.actor, **kwargs)
+            else:
+                self.planner = PolicyGuidedMPCPlanner(model_env, self.actor, **kwargs)
 
     def _make_checkpoint(self) -> Checkpoint:
         components: dict[str, Any] = {
@@ -386,6 +410,9 @@ class Trainer:
                     f"has {key}={value!r}; use another run_dir or the original config"
                 )
         self.checkpoint.load(latest)
+        threshold = self.progress.get("disagreement_threshold")
+        if threshold is not None and self.planner is not None:
+            self.planner.disagreement_threshold = float(threshold)
         logger.info("resumed from %s at %d real steps", latest, self.progress["real_steps"])
         return True
 
@@ -436,25 +463,60 @@ class Trainer:
         """Refits the world model on every real transition so far."""
         wm = self.cfg.world_model
         start = time.perf_counter()
-        history = fit_dynamics(
-            self.model,
-            self.dataset,
-            batch_size=int(wm.batch_size),
-            max_epochs=int(wm.max_epochs),
-            val_fraction=float(wm.val_fraction),
-            patience=int(wm.patience),
-            seed=int(self.cfg.seed) + self.progress["updates"],
-            optimizer=self.model_optim,
-        )
-        self.log(
-            {
-                "model/train_loss": history.train_loss[-1],
-                "model/val_loss": history.best_val_loss,
-                "model/epochs": history.epochs,
-                "model/transitions": len(self.dataset),
-                "time/model_fit_s": time.perf_counter() - start,
-            }
-        )
+        seed = int(self.cfg.seed) + self.progress["updates"]
+        if isinstance(self.model, EnsembleDeltaDynamicsModel):
+            history = fit_ensemble(
+                self.model,
+                self.dataset,
+                batch_size=int(wm.batch_size),
+                max_epochs=int(wm.max_epochs),
+                val_fraction=float(wm.val_fraction),
+                patience=int(wm.patience),
+                seed=seed,
+                optimizer=self.model_optim,
+            )
+        else:
+            history = fit_dynamics(
+                self.model,
+                self.dataset,
+                **fit_dynamics_kwargs(wm),
+                seed=seed,
+                optimizer=self.model_optim,
+            )
+        scalars = {
+            "model/train_loss": history.train_loss[-1],
+            "model/val_loss": history.best_val_loss,
+            "model/epochs": history.epochs,
+            "model/transitions": len(self.dataset),
+        }
+        if getattr(history, "multi_step", 1) > 1:
+            scalars["model/train_multi_step_loss"] = history.train_multi_step_loss[-1]
+            scalars["model/val_multi_step_loss"] = history.best_val_multi_step_loss
+        if isinstance(self.model, EnsembleDeltaDynamicsModel) and wm.get("adaptive_horizon"):
+            # Calibrated on the fit's held-out split, which no member trained on.
+            state, action, next_state, _ = _transition_tensors(self.dataset)
+            idx = history.val_indices
+            calibration = calibrate_disagreement_threshold(
+                self.model,
+                state[idx],
+                action[idx],
+                next_state[idx],
+                quantile=float(wm.disagreement_quantile),
+            )
+            self.progress["disagreement_threshold"] = float(calibration.threshold)
+            self.planner.disagreement_threshold = float(calibration.threshold)
+            scalars["model/disagreement_threshold"] = float(calibration.threshold)
+        scalars["time/model_fit_s"] = time.perf_counter() - start
+        self.log(scalars)
+
+    @staticmethod
+    def _ensemble_stats(batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        """Effective horizon and disagreement of an ensemble planner's batch (else none)."""
+        out = {}
+        for name in ("effective_horizon", "disagreement"):
+            if ("planner", name) in batch.keys(True):
+                out[f"planner/{name}"] = batch["planner", name].float().mean()
+        return out
 
     def collect_random(self, bar: tqdm) -> None:
         """Random-policy real steps that fit the first model (counted in the budget)."""
@@ -590,6 +652,7 @@ class Trainer:
                             {
                                 "planner/best_return": batch["planner", "best_return"].mean(),
                                 "planner/mean_return": batch["planner", "mean_return"].mean(),
+                                **self._ensemble_stats(batch),
                             }
                         )
                 if self.ppo:

@@ -2,19 +2,27 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from torchrl_mbmf.analysis.horizon import horizon_predictions, horizon_table, multistep_mse
+from torchrl_mbmf.analysis.horizon import (
+    HorizonError,
+    horizon_predictions,
+    horizon_table,
+    multistep_mse,
+)
 from torchrl_mbmf.data.transitions import TransitionDataset, collect_random_transitions
 from torchrl_mbmf.envs.factory import env_metadata, make_env
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.trainers.dynamics import fit_dynamics
+from torchrl_mbmf.objectives.dynamics_loss import check_multi_step
+from torchrl_mbmf.trainers.dynamics import fit_dynamics, fit_dynamics_kwargs
 
 logger = logging.getLogger(__name__)
 
@@ -91,17 +99,79 @@ def plot_horizon_predictions(
     return files
 
 
+def horizon_comparison_table(
+    errors: Sequence[HorizonError],
+    other: Sequence[HorizonError],
+    *,
+    label: str = "k=1",
+    other_label: str = "k=5",
+) -> str:
+    """Markdown table of two models' open-loop errors per horizon, side by side.
+
+    Both lists must come from :func:`~torchrl_mbmf.analysis.multistep_mse` on the same data,
+    start states and horizons. The ratio columns are ``other / errors`` (below 1: ``other``
+    predicts better).
+
+    Args:
+        errors: the first model's errors (the reference).
+        other: the second model's errors.
+
+    Keyword Args:
+        label: name of the first model. Defaults to ``"k=1"``.
+        other_label: name of the second model. Defaults to ``"k=5"``.
+
+    Returns:
+        The table: x MSE and reward MSE (means over steps ``1..h``) of both models.
+
+    Raises:
+        ValueError: if the horizons differ.
+
+    Examples:
+        >>> from torchrl_mbmf.analysis import HorizonError
+        >>> from torchrl_mbmf.trainers.world_model_job import horizon_comparison_table
+        >>> a, b = HorizonError(5, 3, 2.0, 0.4, 3, 1, []), HorizonError(5, 3, 1.0, 0.5, 2, 1, [])
+        >>> print(horizon_comparison_table([a], [b]).splitlines()[2])
+        | 5 | 2 | 1 | 0.5 | 0.4 | 0.5 | 1.25 |
+    """
+    if [e.horizon for e in errors] != [e.horizon for e in other]:
+        raise ValueError(
+            f"horizons differ: {[e.horizon for e in errors]} vs {[e.horizon for e in other]}"
+        )
+    lines = [
+        f"| h | x MSE, {label} | x MSE, {other_label} | x ratio | reward MSE, {label} "
+        f"| reward MSE, {other_label} | reward ratio |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for a, b in zip(errors, other, strict=True):
+        x_ratio = b.x_mse / a.x_mse if a.x_mse else float("nan")
+        r_ratio = b.reward_mse / a.reward_mse if a.reward_mse else float("nan")
+        lines.append(
+            f"| {a.horizon} | {a.x_mse:.4g} | {b.x_mse:.4g} | {x_ratio:.3g} "
+            f"| {a.reward_mse:.4g} | {b.reward_mse:.4g} | {r_ratio:.3g} |"
+        )
+    return "\n".join(lines)
+
+
 def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
     """Runs the job described by the ``fit_world_model`` Hydra config, writing into ``out_dir``.
 
     Writes ``dataset/`` (the random transitions), ``world_model.pt`` (state dict and
     constructor config), ``fit_history.json``, ``horizon_mse.json`` and ``horizon_mse.md``, and
-    ``horizon_x.png`` / ``horizon_reward.png``.
+    ``horizon_x.png`` / ``horizon_reward.png``. The model is fitted with the settings of
+    ``world_model`` (:func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics_kwargs`, including
+    ``world_model.multi_step``).
+
+    With ``compare_multi_step: k`` a second model is fitted with ``multi_step=k`` on the same
+    data, from the same initial weights, with the same seed (so the same split and one-step
+    minibatch order) and evaluated on the same start states; it writes
+    ``world_model_multistep.pt``, ``fit_history_multistep.json``,
+    ``horizon_mse_multistep.json`` / ``.md`` and ``horizon_compare.md`` (both models' x and
+    reward MSE per horizon, also in the summary as ``horizon_compare_table``).
 
     Args:
         cfg: the composed config (``env``, ``reward``, ``world_model``, ``seed``,
             ``eval_steps``, ``horizons``, ``eval_starts``, ``plot_rollouts``, ``dataset``,
-            ``progress``).
+            ``progress`` and optionally ``compare_multi_step``).
         out_dir: the run folder.
 
     Returns:
@@ -133,6 +203,14 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
         raise ValueError(f"horizons must all be >= 1, got {horizons}")
     if int(wm.random_steps) < 1:
         raise ValueError(f"world_model.random_steps must be >= 1, got {wm.random_steps}")
+    fit_kwargs = fit_dynamics_kwargs(wm)
+    compare = cfg.get("compare_multi_step")
+    if compare is not None:
+        compare = check_multi_step(compare, key="compare_multi_step")
+        if compare == fit_kwargs["multi_step"]:
+            raise ValueError(
+                f"compare_multi_step={compare} equals world_model.multi_step; nothing to compare"
+            )
 
     def build(seed: int):
         return make_env(
@@ -163,28 +241,34 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
     state_dim = env.full_observation_spec_unbatched[STATE_KEY].shape[-1]
     action_dim = env.full_action_spec_unbatched[env.action_key].shape[-1]
     model = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes))
-    history = fit_dynamics(
-        model,
-        data,
-        lr=float(wm.lr),
-        batch_size=int(wm.batch_size),
-        max_epochs=int(wm.max_epochs),
-        val_fraction=float(wm.val_fraction),
-        patience=int(wm.patience),
-        seed=cfg.seed,
-        progress=cfg.progress,
-    )
-    torch.save(
-        {"config": model.config, "state_dict": model.state_dict(), "metadata": expect},
-        out_dir / "world_model.pt",
-    )
-    (out_dir / "fit_history.json").write_text(json.dumps(history.to_dict(), indent=2))
-    errors = multistep_mse(
-        model, eval_data, horizons=horizons, num_starts=cfg.eval_starts, seed=cfg.seed
-    )
-    table = horizon_table(errors)
-    (out_dir / "horizon_mse.json").write_text(json.dumps([e.to_dict() for e in errors], indent=2))
-    (out_dir / "horizon_mse.md").write_text(table + "\n")
+    initial_weights = copy.deepcopy(model.state_dict()) if compare is not None else None
+
+    def fit_and_evaluate(
+        model: DeltaDynamicsModel, multi_step: int, suffix: str
+    ) -> tuple[Any, list[HorizonError], str]:
+        history = fit_dynamics(
+            model,
+            data,
+            **{**fit_kwargs, "multi_step": multi_step},
+            seed=cfg.seed,
+            progress=cfg.progress,
+        )
+        torch.save(
+            {"config": model.config, "state_dict": model.state_dict(), "metadata": expect},
+            out_dir / f"world_model{suffix}.pt",
+        )
+        (out_dir / f"fit_history{suffix}.json").write_text(json.dumps(history.to_dict(), indent=2))
+        errors = multistep_mse(
+            model, eval_data, horizons=horizons, num_starts=cfg.eval_starts, seed=cfg.seed
+        )
+        table = horizon_table(errors)
+        (out_dir / f"horizon_mse{suffix}.json").write_text(
+            json.dumps([e.to_dict() for e in errors], indent=2)
+        )
+        (out_dir / f"horizon_mse{suffix}.md").write_text(table + "\n")
+        return history, errors, table
+
+    history, errors, table = fit_and_evaluate(model, fit_kwargs["multi_step"], "")
     plot_horizon_predictions(
         model, eval_data, horizons, out_dir, num_rollouts=int(cfg.plot_rollouts), seed=cfg.seed
     )
@@ -198,7 +282,45 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
         "best_epoch": history.best_epoch,
         "best_val_loss": history.best_val_loss,
         "fit_seconds": history.seconds,
+        "multi_step": fit_kwargs["multi_step"],
+        "multi_step_weight": fit_kwargs["multi_step_weight"],
         "horizon_table": table,
     }
+    if compare is not None:
+        other = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes))
+        other.load_state_dict(initial_weights)
+        other_history, other_errors, other_table = fit_and_evaluate(other, compare, "_multistep")
+        labels = {"label": f"k={fit_kwargs['multi_step']}", "other_label": f"k={compare}"}
+        comparison = horizon_comparison_table(errors, other_errors, **labels)
+        fits = "\n".join(
+            f"- {label}: {h.epochs} epochs, kept epoch {h.best_epoch}, held-out one-step loss "
+            f"{h.best_val_loss:.5g}"
+            + (
+                f", held-out {h.multi_step}-step loss {h.best_val_multi_step_loss:.5g} "
+                f"(early stopping on {h.early_stopping})"
+                if h.multi_step > 1
+                else ""
+            )
+            + f", {h.seconds:.0f} s"
+            for label, h in zip(labels.values(), (history, other_history), strict=True)
+        )
+        (out_dir / "horizon_compare.md").write_text(
+            f"Open-loop MSE on {errors[0].num_rollouts} held-out start states "
+            f"(multi_step_weight={fit_kwargs['multi_step_weight']:g}):\n\n"
+            f"{comparison}\n\n{fits}\n"
+        )
+        logger.info("open-loop errors, %s vs %s:\n%s", *labels.values(), comparison)
+        summary.update(
+            {
+                "compare_multi_step": compare,
+                "epochs_multistep": other_history.epochs,
+                "best_epoch_multistep": other_history.best_epoch,
+                "best_val_loss_multistep": other_history.best_val_loss,
+                "best_val_multi_step_loss_multistep": other_history.best_val_multi_step_loss,
+                "fit_seconds_multistep": other_history.seconds,
+                "horizon_table_multistep": other_table,
+                "horizon_compare_table": comparison,
+            }
+        )
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
