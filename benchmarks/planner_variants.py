@@ -1,4 +1,4 @@
-"""Planner variants: single model vs K=5 ensemble, without and with the adaptive horizon.
+"""Planner variants: terminal value, CEM/MPPI refinement, K=5 ensemble, adaptive horizon.
 
 python benchmarks/planner_variants.py --threads 1   # -> results/planner_variants.json
 
@@ -6,6 +6,8 @@ One 15x10 policy-guided plan on HalfCheetah sizes (18-dim state, 6-dim action, 5
 model members, 64x64 policy), from 1 and from 8 real states:
 
 * ``PolicyGuidedMPCPlanner``: the thesis planner on one ``DeltaDynamicsModel``.
+* ``+ terminal value``: the PPO critic's value of each candidate's last state added.
+* ``+ CEM`` / ``+ MPPI``: two refinement rounds after the policy round (three rollouts).
 * ``Ensemble K=5, full horizon``: ``EnsemblePolicyGuidedPlanner`` without threshold; it still
   writes the disagreement statistic, so every step runs all 5 members on all candidates.
 * ``Ensemble K=5, full horizon, no stats``: same without ``stats_key``: each candidate goes
@@ -58,7 +60,7 @@ def main() -> None:
     packed_peak = packed_linear_peak_gflops()
     peak = max(mm_peak, packed_peak)
     real = make_half_cheetah_env(seed=0)
-    actor, _ = make_ppo_actor_critic(real)
+    actor, critic = make_ppo_actor_critic(real)
     single = DeltaDynamicsModel(18, 6)
     ensemble = EnsembleDeltaDynamicsModel(18, 6, num_members=K)
     model_f = mlp_flops([24, 500, 500, 19])
@@ -76,6 +78,24 @@ def main() -> None:
             "PolicyGuidedMPCPlanner (1 model)": (
                 PolicyGuidedMPCPlanner(single_env, actor, num_candidates=M, horizon=H),
                 model_f,
+            ),
+            "PolicyGuidedMPCPlanner + terminal value (critic)": (
+                PolicyGuidedMPCPlanner(
+                    single_env, actor, num_candidates=M, horizon=H, value_module=critic
+                ),
+                model_f,
+            ),
+            "PolicyGuidedMPCPlanner + CEM (2 rounds)": (
+                PolicyGuidedMPCPlanner(
+                    single_env, actor, num_candidates=M, horizon=H, refinement="cem"
+                ),
+                3 * model_f,
+            ),
+            "PolicyGuidedMPCPlanner + MPPI (2 rounds)": (
+                PolicyGuidedMPCPlanner(
+                    single_env, actor, num_candidates=M, horizon=H, refinement="mppi"
+                ),
+                3 * model_f,
             ),
             f"Ensemble K={K}, full horizon": (
                 EnsemblePolicyGuidedPlanner(ens_env, actor, num_candidates=M, horizon=H),
