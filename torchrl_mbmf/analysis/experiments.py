@@ -154,8 +154,11 @@ def _log_std_figure(runs: dict[str, list[Run]], path: Path) -> str | None:
     return path.name
 
 
-def _horizon(roots: Sequence[str | Path]) -> dict[str, Any]:
-    """Tables 8 and 9 over the seeds of ``recipes/fit_world_model.py`` folders."""
+def _horizon(roots: Sequence[str | Path], out_dir: Path) -> dict[str, Any]:
+    """Tables 8 and 9 over the seeds of ``recipes/fit_world_model.py`` folders.
+
+    The first folder's prediction plots (figures 9, 10) are copied into ``out_dir``.
+    """
     files = sorted(p for root in roots for p in Path(root).rglob("horizon_mse.json"))
     by_h: dict[int, dict[str, list[float]]] = {}
     folders = []
@@ -177,7 +180,14 @@ def _horizon(roots: Sequence[str | Path]) -> dict[str, Any]:
                 "thesis_reward_mse": thesis.get(h, (None, None))[1],
             }
         )
-    return {"folders": folders, "rows": rows}
+    figures = {}
+    for quantity in ("x", "reward"):
+        plots = [f.parent / f"horizon_{quantity}.png" for f in files]
+        plots = [p for p in plots if p.exists()]
+        if plots:
+            shutil.copy2(plots[0], out_dir / f"horizon_{quantity}.png")
+            figures[quantity] = f"horizon_{quantity}.png"
+    return {"folders": folders, "rows": rows, "figures": figures}
 
 
 def collect_runs(runs: Iterable[Run], dest: str | Path, *, max_file_bytes: int = 1_000_000) -> int:
@@ -277,8 +287,8 @@ def analyze_experiments(
 
     Keyword Args:
         world_model_roots: folders of ``recipes/fit_world_model.py`` runs, for tables 8 and 9.
-        gait: run the gait analysis of the PPO-MPC policies (seed 0 per reward). Defaults to
-            ``True``.
+        gait: run the gait analysis of one PPO-MPC policy per reward (the lowest seed among
+            the finished runs). Defaults to ``True``.
         render: render gait frames offscreen (needs ``MUJOCO_GL=egl`` or ``osmesa`` without a
             display). Defaults to ``True``.
         gait_steps: steps of the gait rollout. Defaults to ``60`` (the thesis' figures).
@@ -375,7 +385,15 @@ def analyze_experiments(
     log_std = {rw: sel("ppo_mpc", rw) for rw in REWARDS}
     analysis["log_std_figure"] = _log_std_figure(log_std, out_dir / "exp3_log_std.png")
     if gait:
-        seed0 = {rw: v[0] for rw, v in log_std.items() if v}
+        # One policy per reward: the lowest seed whose run finished (else got furthest).
+        seed0 = {
+            rw: sorted(
+                (r for r in v if (r.path / "policy.pt").exists()),
+                key=lambda r: (not r.complete, -r.last_step, r.seed),
+            )[0]
+            for rw, v in log_std.items()
+            if any((r.path / "policy.pt").exists() for r in v)
+        }
         analysis["gait"] = _gait(seed0, out_dir, steps=gait_steps, render=render)
 
     # Experiment 4: SAC vs SAC-MPC (figure 17).
@@ -392,7 +410,7 @@ def analyze_experiments(
         )
     analysis["exp4"] = cmp4
 
-    analysis["horizon_mse"] = _horizon(world_model_roots) if world_model_roots else None
+    analysis["horizon_mse"] = _horizon(world_model_roots, out_dir) if world_model_roots else None
 
     # Beyond the thesis: every variant of PPO-MPC and SAC-MPC against the thesis' planner.
     ablation: dict[str, Any] = {}

@@ -142,6 +142,9 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
                 f"{_ci(row['reward_mse'], 4)} | {_fmt(row['thesis_reward_mse'], 4)} |"
             )
         out.append("")
+        figures = hm.get("figures", {})
+        out += _figure(rel, figures.get("x"), "open-loop x-position predictions (figure 9)")
+        out += _figure(rel, figures.get("reward"), "open-loop reward predictions (figure 10)")
     out += ["### Experiment 2: PPO vs MPC vs PPO-MPC (figures 11a/11b, table 10)", ""]
     table10 = "; ".join(f"{a}: {b} at {c}" for a, b, c in THESIS["table10"])
     out += _comparison_md(
