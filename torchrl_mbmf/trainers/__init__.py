@@ -1,5 +1,11 @@
 from torchrl_mbmf.trainers.config import METHODS, ConfigError, validate_train_config
-from torchrl_mbmf.trainers.dynamics import FitHistory, fit_dynamics
+from torchrl_mbmf.trainers.dynamics import FitHistory, fit_dynamics, fit_dynamics_kwargs
+from torchrl_mbmf.trainers.ensemble_fit import (
+    DisagreementCalibration,
+    EnsembleFitHistory,
+    calibrate_disagreement_threshold,
+    fit_ensemble,
+)
 from torchrl_mbmf.trainers.export import load_policy, save_policy
 from torchrl_mbmf.trainers.loop import Trainer, seed_everything
 from torchrl_mbmf.trainers.ppo import ppo_update
@@ -8,10 +14,15 @@ from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 __all__ = [
     "METHODS",
     "ConfigError",
+    "DisagreementCalibration",
+    "EnsembleFitHistory",
     "FitHistory",
     "FusedSACUpdate",
     "Trainer",
+    "calibrate_disagreement_threshold",
     "fit_dynamics",
+    "fit_dynamics_kwargs",
+    "fit_ensemble",
     "load_policy",
     "ppo_update",
     "sac_update_step",
