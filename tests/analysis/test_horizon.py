@@ -77,3 +77,38 @@ def test_errors():
         multistep_mse(model, data, horizons=(100,))
     with pytest.raises(ValueError, match="horizon must be >= 1"):
         horizon_predictions(model, data, 0)
+
+
+def test_rollouts_never_cross_an_unflagged_reset():
+    # Two batches of one env; a new collector resets the env between them without a done flag,
+    # so the dataset keeps one trajectory id across both. An open-loop window that crossed the
+    # reset would compare the model with a jump in x the model cannot know about.
+    def batch(x0: float, steps: int) -> TensorDict:
+        x = x0 + torch.arange(steps + 1, dtype=torch.float32)[:, None]  # x' = x + a, a = 1
+        state = torch.cat([x, torch.zeros_like(x)], -1)
+        return TensorDict(
+            state=state[:-1],
+            action=torch.ones(steps, 1),
+            next=TensorDict(
+                state=state[1:],
+                reward=torch.full((steps, 1), 2.0),
+                done=torch.zeros(steps, 1, dtype=torch.bool),
+                batch_size=[steps],
+            ),
+            batch_size=[steps],
+        )
+
+    data = TransitionDataset({"env_id": "Mock-v0", "reward": {"name": "default"}})
+    data.extend(batch(0.0, 6))
+    data.extend(batch(100.0, 6))
+    assert len(data.trajectories()) == 1  # the ids alone join the two episodes
+    model = DeltaDynamicsModel(2, 1, hidden_sizes=(4,))
+    for p in model.parameters():
+        torch.nn.init.zeros_(p)
+    model.delta_loc.copy_(torch.tensor([1.0, 0.0]))  # the exact dynamics
+    model.reward_loc.fill_(2.0)
+    (err,) = multistep_mse(model, data, horizons=(3,), num_starts=None)
+    assert err.num_rollouts == 2 * (6 - 3 + 1)
+    assert err.x_mse == 0.0 and err.reward_mse == 0.0
+    out = horizon_predictions(model, data, 3, num_rollouts=8, seed=1)
+    torch.testing.assert_close(out["x_pred"], out["x_real"])

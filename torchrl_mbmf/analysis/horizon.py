@@ -50,14 +50,10 @@ def _windows(
     data: TransitionDataset, horizon: int, num_starts: int | None, seed: int
 ) -> tuple[torch.Tensor, ...]:
     td = data.tensors()
-    rows = []
-    for idx in data.trajectories():
-        if idx.numel() >= horizon:
-            starts = torch.arange(idx.numel() - horizon + 1)
-            rows.append(idx[starts[:, None] + torch.arange(horizon)])
-    if not rows:
+    # Windows never cross a done, a truncation or an unflagged reset between two batches.
+    windows = data.windows(horizon)  # [S, h] row indices of consecutive steps
+    if not windows.shape[0]:
         raise ValueError(f"no episode in the data has {horizon} consecutive steps")
-    windows = torch.cat(rows)  # [S, h] row indices of consecutive steps
     if num_starts is not None and num_starts < windows.shape[0]:
         g = torch.Generator().manual_seed(seed)
         windows = windows[torch.randperm(windows.shape[0], generator=g)[:num_starts]]
