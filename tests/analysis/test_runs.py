@@ -184,3 +184,20 @@ def test_a_run_found_under_two_roots_counts_once_the_longest(tmp_path):
     assert analysis["superseded_runs"] == [
         {"name": "Env__ppo__default__h10__seed0", "last_step": 2000, "complete": False}
     ]
+
+
+def test_ablation_never_reads_a_single_seed_as_a_difference(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        make_run(runs, "ppo_mpc", seed, [1.0, 2.0, 3.0 + seed])
+    # one seed of the CEM variant, far above the thesis planner's interval
+    cem = make_run(tmp_path / "cem", "ppo_mpc", 0, [10.0, 20.0, 30.0])
+    cem = cem.rename(runs / cem.name.replace("__seed0", "__cem__seed0"))
+    config = yaml.safe_load((cem / "config.yaml").read_text())
+    config["planner"]["refinement"] = "cem"
+    (cem / "config.yaml").write_text(yaml.safe_dump(config))
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False)
+    ablation = analysis["ablation"]["ppo_mpc"]
+    assert set(ablation["intervals"]) == {"thesis", "cem"}
+    assert ablation["intervals"]["cem"]["n"] == 1
+    assert ablation["versus_reference"] == {"cem": "one seed"}

@@ -55,16 +55,19 @@ def _comparison_md(cmp: Mapping[str, Any], rel: str, caption: str, thesis: str |
     if not cmp.get("complete"):
         return [f"Not run at this budget (runs available: {cmp.get('available', [])}).", ""]
     out = _figure(rel, cmp.get("figure"), caption)
+    reference = cmp["tables"]["all_steps"]["reference"]
     out += [
         f"Compared at **{cmp['common_step']:,} real steps** (the largest count every compared "
         "run reached), IQM over seeds of the last-10-episode mean return with its 95% "
         "bootstrap interval:",
         "",
-        "| configuration | return at the common step | seeds |",
-        "|---|---|---|",
+        f"| configuration | return at the common step | vs {reference} | seeds |",
+        "|---|---|---|---|",
     ]
+    versus = cmp.get("versus_reference", {})
     for label, iv in cmp["intervals"].items():
-        out.append(f"| {label} | {_ci(iv)} | {', '.join(cmp['runs'][label])} |")
+        relation = versus.get(label, "reference" if label == reference else "-")
+        out.append(f"| {label} | {_ci(iv)} | {relation} | {', '.join(cmp['runs'][label])} |")
     out.append("")
     for key, title in (
         ("all_steps", "every real step counted (random-data steps included)"),

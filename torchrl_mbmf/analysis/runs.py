@@ -407,6 +407,9 @@ def final_values(
 def compare_intervals(a: Interval, b: Interval) -> str:
     """Compares two bootstrap intervals: ``"higher"``, ``"lower"`` or ``"overlapping"``.
 
+    An interval over a single seed is a point, not an interval, so any comparison involving one
+    is ``"one seed"``: never read as a difference.
+
     Args:
         a: the interval of the first configuration.
         b: the interval of the second.
@@ -416,7 +419,11 @@ def compare_intervals(a: Interval, b: Interval) -> str:
         >>> from torchrl_mbmf.analysis.runs import compare_intervals
         >>> compare_intervals(Interval(5, 4, 6, 0.95, 3), Interval(1, 0, 2, 0.95, 3))
         'higher'
+        >>> compare_intervals(Interval(5, 5, 5, 0.95, 1), Interval(1, 0, 2, 0.95, 3))
+        'one seed'
     """
+    if min(a.n, b.n) < 2:
+        return "one seed"
     if a.low > b.high:
         return "higher"
     if a.high < b.low:
