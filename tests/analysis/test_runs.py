@@ -13,6 +13,7 @@ import pytest
 import yaml
 
 from torchrl_mbmf.analysis.experiments import analyze_experiments
+from torchrl_mbmf.analysis.report import write_report
 from torchrl_mbmf.analysis.runs import aggregate_curve, load_runs, ppo_maximum_table
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -197,7 +198,36 @@ def test_ablation_never_reads_a_single_seed_as_a_difference(tmp_path):
     config["planner"]["refinement"] = "cem"
     (cem / "config.yaml").write_text(yaml.safe_dump(config))
     analysis = analyze_experiments([runs], tmp_path / "out", gait=False)
-    ablation = analysis["ablation"]["ppo_mpc"]
-    assert set(ablation["intervals"]) == {"thesis", "cem"}
-    assert ablation["intervals"]["cem"]["n"] == 1
-    assert ablation["versus_reference"] == {"cem": "one seed"}
+    cem = analysis["ablation"]["ppo_mpc"]["variants"]["cem"]
+    assert set(cem["intervals"]) == {"thesis", "cem"}
+    assert cem["intervals"]["cem"]["n"] == 1
+    assert cem["versus_reference"] == {"cem": "one seed"}
+
+
+def test_each_ablation_variant_is_compared_at_its_own_common_step(tmp_path):
+    runs = tmp_path / "runs"
+
+    def variant(name: str, seed: int, values: list[float], **planner) -> None:
+        run = make_run(tmp_path / name, "ppo_mpc", seed, values, total_steps=4000)
+        run = run.rename(runs / run.name.replace("__seed", f"__{name}__seed"))
+        config = yaml.safe_load((run / "config.yaml").read_text())
+        config["planner"].update(planner)
+        (run / "config.yaml").write_text(yaml.safe_dump(config))
+
+    for seed in range(3):
+        make_run(runs, "ppo_mpc", seed, [1.0, 2.0, 3.0, 4.0 + seed])
+        variant("cem", seed, [5.0, 6.0, 7.0, 9.0 + seed], refinement="cem")
+        # the terminal-value variant stopped after 2 of its 4 evaluations
+        variant("value", seed, [0.0, 1.0 + seed], terminal_value=True)
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False)
+    variants = analysis["ablation"]["ppo_mpc"]["variants"]
+    assert variants["cem"]["common_step"] == 4000
+    assert variants["cem"]["versus_reference"] == {"cem": "higher"}
+    assert variants["cem"]["intervals"]["thesis"]["values"] == [4.0, 5.0, 6.0]
+    assert variants["value"]["common_step"] == 2000
+    assert variants["value"]["intervals"]["thesis"]["values"] == [2.0, 2.0, 2.0]
+    assert sorted(variants["value"]["partial_runs"]) == [
+        f"Env__ppo_mpc__default__h10__value__seed{s}" for s in range(3)
+    ]
+    report = write_report({"short": tmp_path / "out"}, tmp_path / "REPORT.md")
+    assert "| cem | 4,000 |" in report and "| value | 2,000 |" in report

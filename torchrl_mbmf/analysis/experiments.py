@@ -422,14 +422,21 @@ def analyze_experiments(
         }
         if len(named) < 2 or "thesis" not in named:
             continue
-        cmp = _comparison(named, "thesis")
-        cmp["figure"] = _curves_figure(
-            named,
-            out_dir / f"ablation_{method}.png",
-            title=f"{method}: thesis planner vs variants (default reward)",
-            end=cmp["common_step"],
-        )
-        ablation[method] = cmp
+        # Each variant against the thesis planner at the largest step both reached, so one
+        # interrupted variant does not cut the comparison of all the others short.
+        variants = {
+            name: _comparison({"thesis": named["thesis"], name: runs}, "thesis")
+            for name, runs in sorted(named.items())
+            if name != "thesis"
+        }
+        ablation[method] = {
+            "variants": variants,
+            "figure": _curves_figure(
+                named,
+                out_dir / f"ablation_{method}.png",
+                title=f"{method}: thesis planner vs variants (default reward)",
+            ),
+        }
     analysis["ablation"] = ablation
 
     # Verdicts on the research questions (thesis section 1.1).

@@ -96,6 +96,39 @@ def _comparison_md(cmp: Mapping[str, Any], rel: str, caption: str, thesis: str |
     return out
 
 
+def _ablation_md(ablation: Mapping[str, Any], rel: str, caption: str) -> list[str]:
+    """One row per variant, each compared with the thesis planner at their own common step."""
+    out = _figure(rel, ablation.get("figure"), caption)
+    out += [
+        "Each variant against the thesis planner at the largest step both reached; IQM over "
+        "seeds of the last-10-episode mean return with its 95% bootstrap interval; the step at "
+        "which the variant's IQM curve first reaches the thesis planner's best, every real step "
+        "counted, with its ratio to the thesis planner's step (below 1: fewer steps).",
+        "",
+        "| variant | compared at | variant | thesis planner | variant vs thesis "
+        "| first step at the thesis' best (ratio) | seeds |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    partial: dict[str, int] = {}
+    for name, cmp in ablation["variants"].items():
+        if not cmp.get("complete"):
+            continue
+        row = next(r for r in cmp["tables"]["all_steps"]["rows"] if r["label"] == name)
+        ratio = "-" if row["ratio"] is None else f"{row['ratio']:.2f}"
+        reached = "never" if row["step"] is None else f"{row['step']:,} ({ratio})"
+        out.append(
+            f"| {name} | {cmp['common_step']:,} | {_ci(cmp['intervals'][name])} | "
+            f"{_ci(cmp['intervals']['thesis'])} | {cmp['versus_reference'].get(name, '-')} | "
+            f"{reached} | {', '.join(cmp['runs'][name])} |"
+        )
+        partial.update(cmp.get("partial_runs", {}))
+    out.append("")
+    if partial:
+        parts = ", ".join(f"{k} stopped at {v:,}" for k, v in sorted(partial.items()))
+        out += [f"Partial runs (interrupted before their budget): {parts}.", ""]
+    return out
+
+
 def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
     out = [f"## Budget `{name}`", ""]
     runs = analysis["runs"]
@@ -199,9 +232,9 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
     out += _comparison_md(analysis["exp4"], rel, "SAC vs SAC-MPC", THESIS["exp4"])
     if analysis.get("ablation"):
         out += ["### Beyond the thesis: planner and model variants", ""]
-        for method, cmp in analysis["ablation"].items():
+        for method, abl in analysis["ablation"].items():
             out += [f"#### {method}", ""]
-            out += _comparison_md(cmp, rel, f"{method}: thesis planner vs variants", None)
+            out += _ablation_md(abl, rel, f"{method}: thesis planner vs variants")
     out += [
         "### Research questions",
         "",
