@@ -215,6 +215,8 @@ def collect_runs(runs: Iterable[Run], dest: str | Path, *, max_file_bytes: int =
         >>> _ = (src / "a/logs/scalars/train/episode_return.csv").write_text("1,2.0\n")
         >>> collect_runs(load_runs(src), dst)
         2
+        >>> collect_runs(load_runs(dst), dst)  # already collected: nothing to copy
+        0
     """
     dest = Path(dest)
     copied = 0
@@ -226,6 +228,8 @@ def collect_runs(runs: Iterable[Run], dest: str | Path, *, max_file_bytes: int =
         for f in files:
             if f.exists() and f.stat().st_size <= max_file_bytes:
                 target = dest / run.name / f.relative_to(run.path)
+                if target.exists() and target.samefile(f):
+                    continue  # the run already lives in ``dest`` (re-analysing collected runs)
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy2(f, target)
                 copied += 1
