@@ -219,8 +219,14 @@ def test_each_ablation_variant_is_compared_at_its_own_common_step(tmp_path):
         variant("cem", seed, [5.0, 6.0, 7.0, 9.0 + seed], refinement="cem")
         # the terminal-value variant stopped after 2 of its 4 evaluations
         variant("value", seed, [0.0, 1.0 + seed], terminal_value=True)
+    for seed in range(3):  # the CEM runs log an effective horizon: 4 + seed, then 6 + seed
+        planner = runs / f"Env__ppo_mpc__default__h10__cem__seed{seed}" / "logs/scalars/planner"
+        planner.mkdir()
+        (planner / "effective_horizon.csv").write_text(f"1000,{4 + seed}\n3000,{6 + seed}\n")
     analysis = analyze_experiments([runs], tmp_path / "out", gait=False)
     variants = analysis["ablation"]["ppo_mpc"]["variants"]
+    assert variants["cem"]["planner"]["effective_horizon"]["values"] == [5.0, 6.0, 7.0]
+    assert variants["value"]["planner"] == {}
     assert variants["cem"]["common_step"] == 4000
     assert variants["cem"]["versus_reference"] == {"cem": "higher"}
     assert variants["cem"]["intervals"]["thesis"]["values"] == [4.0, 5.0, 6.0]
@@ -231,3 +237,4 @@ def test_each_ablation_variant_is_compared_at_its_own_common_step(tmp_path):
     ]
     report = write_report({"short": tmp_path / "out"}, tmp_path / "REPORT.md")
     assert "| cem | 4,000 |" in report and "| value | 2,000 |" in report
+    assert "| cem | 6.0 [5.0, 7.0] (n=3) | - |" in report

@@ -81,6 +81,24 @@ def _comparison(
     return out
 
 
+# Planner statistics of the beyond-the-thesis variants, averaged over each run's training.
+PLANNER_STATISTICS = ("planner/effective_horizon", "planner/disagreement")
+
+
+def _planner_statistics(runs: Sequence[Run], step: int) -> dict[str, Any]:
+    """Per-run mean of each logged planner statistic up to ``step``, with the IQM over runs."""
+    out: dict[str, Any] = {}
+    for name in PLANNER_STATISTICS:
+        means = []
+        for run in runs:
+            steps, values = run.scalar(name)
+            if values[steps <= step].size:
+                means.append(float(values[steps <= step].mean()))
+        if means:
+            out[name.split("/")[-1]] = _interval_dict(means)
+    return out
+
+
 def _curves_figure(
     named: dict[str, list[Run]],
     path: Path,
@@ -433,6 +451,9 @@ def analyze_experiments(
             for name, runs in sorted(named.items())
             if name != "thesis"
         }
+        for name, cmp in variants.items():
+            if cmp.get("complete"):
+                cmp["planner"] = _planner_statistics(named[name], cmp["common_step"])
         ablation[method] = {
             "variants": variants,
             "figure": _curves_figure(

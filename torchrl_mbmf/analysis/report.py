@@ -123,6 +123,24 @@ def _ablation_md(ablation: Mapping[str, Any], rel: str, caption: str) -> list[st
         )
         partial.update(cmp.get("partial_runs", {}))
     out.append("")
+    stats = {
+        name: cmp["planner"]
+        for name, cmp in ablation["variants"].items()
+        if cmp.get("complete") and cmp.get("planner")
+    }
+    if stats:
+        out += [
+            "Planner statistics over training (each run's mean up to the compared step, IQM "
+            "over seeds): the effective horizon is the mean number of trusted imagined steps per "
+            "candidate, the disagreement the members' mean normalised-delta standard deviation.",
+            "",
+            "| variant | effective horizon | disagreement |",
+            "|---|---|---|",
+        ]
+        for name, st in stats.items():
+            h, d = st.get("effective_horizon"), st.get("disagreement")
+            out.append(f"| {name} | {_ci(h, 1)} | {_ci(d, 3)} |")
+        out.append("")
     if partial:
         parts = ", ".join(f"{k} stopped at {v:,}" for k, v in sorted(partial.items()))
         out += [f"Partial runs (interrupted before their budget): {parts}.", ""]
