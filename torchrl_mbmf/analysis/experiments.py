@@ -92,8 +92,9 @@ def _planner_statistics(runs: Sequence[Run], step: int) -> dict[str, Any]:
         means = []
         for run in runs:
             steps, values = run.scalar(name)
-            if values[steps <= step].size:
-                means.append(float(values[steps <= step].mean()))
+            kept = values[steps <= step]
+            if kept.size:
+                means.append(float(kept.mean()))
         if means:
             out[name.split("/")[-1]] = _interval_dict(means)
     return out
