@@ -10,7 +10,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_mbmf.envs.gym_state import make_gym_state_env
 from torchrl_mbmf.envs.half_cheetah import HALF_CHEETAH_ID, make_half_cheetah_env
-from torchrl_mbmf.envs.transforms.rewards import REWARDS, _ForwardPenaltyReward
+from torchrl_mbmf.envs.transforms.rewards import REWARDS, ForwardPenaltyReward
 
 #: Reward name meaning "the env's own reward" for envs other than HalfCheetah.
 NATIVE_REWARD = "default"
@@ -94,7 +94,7 @@ def env_metadata(env: EnvBase) -> dict[str, Any]:
     node: EnvBase = env
     while isinstance(node, TransformedEnv):
         for t in node.transform:
-            if isinstance(t, _ForwardPenaltyReward):
+            if isinstance(t, ForwardPenaltyReward):
                 reward = dict(t.parameters_dict())
         node = node.base_env
     gym_env = getattr(node, "_env", None)

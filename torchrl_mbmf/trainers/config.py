@@ -15,6 +15,7 @@ MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc")
 #: Methods trained with PPO.
 PPO_METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc")
 SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
+COLLECTORS: tuple[str, ...] = ("lean", "stock")
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
 REFINEMENTS: tuple[str | None, ...] = (None, "cem", "mppi")
 
@@ -62,6 +63,10 @@ def validate_train_config(cfg: Any) -> None:
     if cfg["sac"].get("update", "stock") not in SAC_UPDATES:
         raise ConfigError(
             f"sac.update={cfg['sac']['update']!r} is not supported; allowed: {list(SAC_UPDATES)}"
+        )
+    if cfg.get("collector", "lean") not in COLLECTORS:
+        raise ConfigError(
+            f"collector={cfg['collector']!r} is not supported; allowed: {list(COLLECTORS)}"
         )
     for key in (
         "total_steps",

@@ -32,6 +32,7 @@ from torchrl.objectives.value import GAE
 from torchrl.record.loggers import get_logger
 from tqdm.auto import tqdm
 
+from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
 from torchrl_mbmf.envs.factory import env_metadata, make_env
@@ -214,6 +215,9 @@ class Trainer:
         ...     summary = Trainer(cfg, Path(d)).train()
     """
 
+    #: The measured parts of :meth:`time_breakdown` (the rest is ``other_s``).
+    TIME_KEYS: tuple[str, ...] = ("env_s", "act_s", "update_s", "refit_s")
+
     def __init__(self, cfg: Any, run_dir: Path) -> None:
         validate_train_config(cfg)
         self.cfg = cfg
@@ -223,6 +227,7 @@ class Trainer:
         self.ppo = cfg.method in PPO_METHODS
         self.model_based = cfg.method in MODEL_BASED
         seed_everything(int(cfg.seed))
+        self.times = dict.fromkeys(self.TIME_KEYS, 0.0)
         if cfg.get("threads") is not None:
             torch.set_num_threads(int(cfg.threads))
         self.env = self._make_env(int(cfg.seed))
@@ -452,9 +457,18 @@ class Trainer:
         """Mean return of the policy alone, deterministic, over ``eval_episodes`` episodes."""
         returns = []
         self.eval_env.set_seed(int(self.cfg.seed) + 1000 + self.progress["real_steps"])
+        lean = self.cfg.get("collector", "lean") == "lean" and LeanCollector.supports(self.eval_env)
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             for _ in range(int(self.cfg.eval_episodes)):
-                td = self.eval_env.rollout(100_000, self.actor)
+                if lean:  # the same episode as env.rollout (tested), without its overhead
+                    td = LeanCollector(
+                        self.eval_env,
+                        self.actor,
+                        frames_per_batch=1,
+                        exploration_type=ExplorationType.DETERMINISTIC,
+                    ).episode()
+                else:
+                    td = self.eval_env.rollout(100_000, self.actor)
                 returns.append(float(td.get(("next", "reward")).sum()))
         return float(np.mean(returns))
 
@@ -507,6 +521,7 @@ class Trainer:
             self.planner.disagreement_threshold = float(calibration.threshold)
             scalars["model/disagreement_threshold"] = float(calibration.threshold)
         scalars["time/model_fit_s"] = time.perf_counter() - start
+        self.times["refit_s"] += scalars["time/model_fit_s"]
         self.log(scalars)
 
     @staticmethod
@@ -518,24 +533,39 @@ class Trainer:
                 out[f"planner/{name}"] = batch["planner", name].float().mean()
         return out
 
+    def _collector(self, policy: Any, frames: int, total: int) -> Any:
+        """The lean collector where the env supports it (``collector=lean``), else the stock one."""
+        if self.cfg.get("collector", "lean") == "lean" and LeanCollector.supports(self.env):
+            return LeanCollector(self.env, policy, frames_per_batch=frames, total_frames=total)
+        return Collector(
+            self.env,
+            policy,
+            frames_per_batch=frames,
+            total_frames=total,
+            auto_register_policy_transforms=False,
+        )
+
+    def _close_collector(self, collector: Any) -> None:
+        times = getattr(collector, "times", None)
+        if times is not None:
+            self.times["env_s"] += times.env_s
+            self.times["act_s"] += times.act_s
+        collector.shutdown()
+
     def collect_random(self, bar: tqdm) -> None:
         """Random-policy real steps that fit the first model (counted in the budget)."""
         steps = int(self.cfg.world_model.random_steps)
         n = max(1, self.env.batch_size.numel())
         frames = min(1000 * n, -(-steps // n) * n)
-        collector = Collector(
-            self.env,
-            RandomPolicy(self.env.full_action_spec),
-            frames_per_batch=frames,
-            total_frames=-(-steps // frames) * frames,
-            auto_register_policy_transforms=False,
+        collector = self._collector(
+            RandomPolicy(self.env.full_action_spec), frames, -(-steps // frames) * frames
         )
         for batch in collector:
             self._count(batch, bar, random=True)
             self.dataset.extend(batch)
             if self.replay is not None:
                 self.replay.extend(self._replay_view(batch))
-        collector.shutdown()
+        self._close_collector(collector)
         self.refit_model()
         self.progress["phase"] = "planning"
 
@@ -618,6 +648,7 @@ class Trainer:
             disable=not cfg.progress,
         )
         start = time.perf_counter()
+        start_steps = self.progress["real_steps"]
         if self.progress["phase"] == "random":
             self.collect_random(bar)
             self.progress["next_refit"] = self.progress["real_steps"] + int(
@@ -634,16 +665,14 @@ class Trainer:
             # Every collector starts from freshly seeded envs, so a resumed run continues
             # exactly like an uninterrupted one (checkpoints happen between collectors).
             self.env.set_seed(int(cfg.seed) + self.progress["real_steps"])
-            collector = Collector(
-                self.env,
-                policy,
-                frames_per_batch=frames,
-                total_frames=-1,
-                auto_register_policy_transforms=False,
-            )
+            collector = self._collector(policy, frames, -1)
+            lean = isinstance(collector, LeanCollector)
             phase = self.progress["phase"]
+            t_wait = time.perf_counter()
             for batch in collector:
                 t_collect = time.perf_counter()
+                if not lean:  # the stock collector's env and policy time, not separable
+                    self.times["env_s"] += t_collect - t_wait
                 self._count(batch, bar)
                 if phase == "planning":
                     self.dataset.extend(batch)
@@ -655,6 +684,7 @@ class Trainer:
                                 **self._ensemble_stats(batch),
                             }
                         )
+                t_update = time.perf_counter()
                 if self.ppo:
                     self.ppo_update(batch)
                     refit = (
@@ -669,18 +699,20 @@ class Trainer:
                     )
                     if refit:
                         self.progress["next_refit"] += int(cfg.sac.refit_every_steps)
+                self.times["update_s"] += time.perf_counter() - t_update
                 if refit:
                     self.refit_model()
                 self.log(
                     {
                         "time/update_s": time.perf_counter() - t_collect,
-                        "time/steps_per_s": self.progress["real_steps"]
+                        "time/steps_per_s": (self.progress["real_steps"] - start_steps)
                         / max(1e-9, time.perf_counter() - start),
                     }
                 )
                 if self.progress["real_steps"] >= self.progress["next_eval"]:
                     self.log({"eval/return": self.evaluate()})
                     self.progress["next_eval"] += int(cfg.eval_every)
+                t_wait = time.perf_counter()
                 checkpoint_due = self.progress["real_steps"] >= self.progress["next_checkpoint"]
                 if checkpoint_due or self.progress["real_steps"] >= total:
                     break
@@ -688,7 +720,7 @@ class Trainer:
                     break
                 if self._policy() is not policy:
                     break
-            collector.shutdown()
+            self._close_collector(collector)
             if self.progress["real_steps"] >= self.progress["next_checkpoint"]:
                 while self.progress["next_checkpoint"] <= self.progress["real_steps"]:
                     self.progress["next_checkpoint"] += int(cfg.checkpoint.every_steps)
@@ -713,8 +745,28 @@ class Trainer:
             "seconds": time.perf_counter() - start,
             "resumed": self.resumed,
         }
+        summary["time_breakdown"] = self.time_breakdown(summary["seconds"])
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         return summary
+
+    def time_breakdown(self, seconds: float) -> dict[str, float]:
+        """Where this process' training time went, in seconds.
+
+        ``env_s``: real env steps with their transforms (with the stock collector, the policy's
+        time too); ``act_s``: the actor or planner; ``update_s``: PPO/SAC updates; ``refit_s``:
+        world-model refits; ``other_s``: the rest (logging, evaluation, checkpoints, datasets).
+
+        Args:
+            seconds: the wall time the breakdown splits.
+
+        Examples:
+            >>> from torchrl_mbmf.trainers import Trainer
+            >>> sorted(Trainer.TIME_KEYS)
+            ['act_s', 'env_s', 'refit_s', 'update_s']
+        """
+        out = {key: float(self.times[key]) for key in self.TIME_KEYS}
+        out["other_s"] = max(0.0, float(seconds) - sum(out.values()))
+        return out
 
     def parameters_digest(self) -> str:
         """SHA-256 of every trained tensor (policy, critics, world model): equal runs match."""

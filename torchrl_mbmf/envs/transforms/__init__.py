@@ -2,6 +2,7 @@ from torchrl_mbmf.envs.transforms.observation import StateToObservation
 from torchrl_mbmf.envs.transforms.rewards import (
     REWARDS,
     DefaultReward,
+    ForwardPenaltyReward,
     HeadPenReward,
     ShinPenReward,
     make_reward,
@@ -10,6 +11,7 @@ from torchrl_mbmf.envs.transforms.rewards import (
 __all__ = [
     "REWARDS",
     "DefaultReward",
+    "ForwardPenaltyReward",
     "HeadPenReward",
     "ShinPenReward",
     "StateToObservation",

@@ -13,13 +13,32 @@ from collections.abc import Sequence
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
+from torchrl.data import TensorSpec
 from torchrl.envs.transforms import Transform
 
 from torchrl_mbmf.envs.keys import FORWARD_VELOCITY_KEY, HEAD_HEIGHT_KEY, JOINT_ANGLES_KEY
 
 
-class _ForwardPenaltyReward(Transform):
-    """Base class: ``reward = forward_weight * velocity - penalty(tensordict, next)``."""
+class ForwardPenaltyReward(Transform):
+    """Base of the thesis rewards: ``reward = forward_weight * velocity - penalty(td, next)``.
+
+    Subclasses define :meth:`penalty` and :meth:`parameters_dict`; :meth:`compute` evaluates the
+    reward of any batch of transitions (a live env step, a whole collected batch or replay
+    samples alike), which is what the env's step and :class:`~torchrl_mbmf.collectors.LeanCollector`
+    both call.
+
+    Keyword Args:
+        forward_weight: weight of the forward velocity.
+        velocity_key: key (under ``"next"``) of the forward velocity.
+        reward_key: reward key written under ``"next"``.
+        extra_next_keys: other ``"next"`` keys the penalty reads.
+        root_keys: root keys the penalty reads (for example the action).
+
+    Examples:
+        >>> from torchrl_mbmf.envs.transforms import DefaultReward, ForwardPenaltyReward
+        >>> isinstance(DefaultReward(), ForwardPenaltyReward)
+        True
+    """
 
     #: Name under which the reward is registered (``make_half_cheetah_env(reward=...)``).
     name: str = ""
@@ -77,7 +96,8 @@ class _ForwardPenaltyReward(Transform):
         # Writing to a replay buffer stores data as it is; rewards are only recomputed on read.
         return tensordict
 
-    def transform_reward_spec(self, reward_spec):
+    def transform_reward_spec(self, reward_spec: TensorSpec) -> TensorSpec:
+        """The reward spec, unchanged (the reward keeps its shape and dtype)."""
         return reward_spec
 
     def __repr__(self) -> str:
@@ -91,7 +111,7 @@ def _last_dim_one(value: torch.Tensor, key: NestedKey) -> torch.Tensor:
     return value
 
 
-class DefaultReward(_ForwardPenaltyReward):
+class DefaultReward(ForwardPenaltyReward):
     """HalfCheetah's own reward: ``x_velocity - ctrl_cost_weight * sum(action**2)`` (thesis eq. 16).
 
     Reproduces gymnasium's ``HalfCheetah-v5`` reward; provided as a transform so that all three
@@ -148,7 +168,7 @@ class DefaultReward(_ForwardPenaltyReward):
         }
 
 
-class HeadPenReward(_ForwardPenaltyReward):
+class HeadPenReward(ForwardPenaltyReward):
     """Thesis HeadPen: ``x_velocity - penalty`` when the head has dropped below a threshold.
 
     The penalty applies when the head's height, relative to its height in the initial pose, is
@@ -213,7 +233,7 @@ class HeadPenReward(_ForwardPenaltyReward):
         }
 
 
-class ShinPenReward(_ForwardPenaltyReward):
+class ShinPenReward(ForwardPenaltyReward):
     """Thesis ShinPen: ``x_velocity`` minus a penalty per front-leg joint bent too far back.
 
     ``penalty = sum_j penalty_weights[j] * [angle_j > thresholds[j]]`` over the front thigh,
@@ -302,12 +322,12 @@ class ShinPenReward(_ForwardPenaltyReward):
 
 
 #: Reward name -> transform class, as accepted by ``make_half_cheetah_env(reward=...)``.
-REWARDS: dict[str, type[_ForwardPenaltyReward]] = {
+REWARDS: dict[str, type[ForwardPenaltyReward]] = {
     cls.name: cls for cls in (DefaultReward, HeadPenReward, ShinPenReward)
 }
 
 
-def make_reward(name: str, **kwargs: object) -> _ForwardPenaltyReward:
+def make_reward(name: str, **kwargs: object) -> ForwardPenaltyReward:
     """Builds a reward transform from its name.
 
     Args:

@@ -96,9 +96,40 @@ class ActorSampler:
         """The actor's distribution built from its parameters."""
         return self.distribution_class(*params, **self.distribution_kwargs)
 
+    @property
+    def is_fast(self) -> bool:
+        """Whether actions are drawn tensor-level (TanhNormal, IndependentNormal, Normal)."""
+        return self._fast
+
     def sample(self, observation: torch.Tensor) -> torch.Tensor:
         """Draws one action per observation (always random, whatever the exploration mode)."""
-        params = self._params_fn(observation)
+        return self.sample_with_params(observation)[0]
+
+    def sample_with_params(
+        self, observation: torch.Tensor
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """Draws one action per observation and returns it with the distribution parameters.
+
+        Args:
+            observation: ``[*B, obs_dim]``.
+
+        Returns:
+            ``(action, params)``, ``params`` in the order of :attr:`param_keys`.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.envs import make_gym_state_env
+            >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+            >>> from torchrl_mbmf.modules.planners.sampling import ActorSampler
+            >>> actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
+            >>> action, (loc, scale) = ActorSampler(actor).sample_with_params(torch.zeros(3))
+            >>> action.shape, loc.shape
+            (torch.Size([1]), torch.Size([1]))
+        """
+        params = tuple(self._params_fn(observation))
+        return self._sample(params), params
+
+    def _sample(self, params: tuple[torch.Tensor, ...]) -> torch.Tensor:
         if not self._fast:
             return self.distribution(*params).sample()
         loc, scale = params

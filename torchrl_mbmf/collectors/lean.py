@@ -1,0 +1,468 @@
+"""A lean single-process collector for the gymnasium envs this package builds."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torchrl.envs import (
+    Compose,
+    DoubleToFloat,
+    EnvBase,
+    GymWrapper,
+    RenameTransform,
+    RewardSum,
+    StepCounter,
+    TransformedEnv,
+)
+from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
+from torchrl.modules import ProbabilisticActor
+
+from torchrl_mbmf.envs.transforms import ForwardPenaltyReward, StateToObservation
+from torchrl_mbmf.modules.planners.sampling import ActorSampler
+
+#: Keys of the done signals, root and ``"next"``.
+DONE_KEYS: tuple[str, ...] = ("done", "terminated", "truncated")
+
+
+@dataclass
+class CollectorTimes:
+    """Seconds spent by a :class:`LeanCollector` since it was built.
+
+    Attributes:
+        env_s: real env steps and resets, and turning their outputs into tensors (the
+            transforms' work).
+        act_s: the policy (actor, planner or random actions).
+
+    Examples:
+        >>> from torchrl_mbmf.collectors import CollectorTimes
+        >>> CollectorTimes(env_s=1.0, act_s=2.0).total_s
+        3.0
+    """
+
+    env_s: float = 0.0
+    act_s: float = 0.0
+
+    @property
+    def total_s(self) -> float:
+        """``env_s + act_s``."""
+        return self.env_s + self.act_s
+
+
+@dataclass
+class _Layout:
+    """What the lean path needs to know of a supported env (read once from its transforms)."""
+
+    gym_envs: list[Any]
+    batch_shape: tuple[int, ...]
+    info_keys: list[str]
+    state_key: NestedKey
+    observation: StateToObservation
+    reward: ForwardPenaltyReward | None
+    reward_dtype: torch.dtype
+    double_keys: set[str] = field(default_factory=set)
+
+
+def _layout(env: EnvBase) -> _Layout | None:
+    """The structure of an env built by ``make_gym_state_env``, or ``None`` if it is another."""
+    if not isinstance(env, TransformedEnv) or not isinstance(env.base_env, GymWrapper):
+        return None
+    transforms = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
+    kinds = [type(t) for t in transforms]
+    if len(kinds) < 4 or kinds[0] is not DoubleToFloat:
+        return None
+    i = 1
+    state_key: NestedKey = "observation"
+    if kinds[i] is RenameTransform:
+        rename = transforms[i]
+        if list(rename.in_keys) != ["observation"] or len(rename.out_keys) != 1:
+            return None
+        state_key = rename.out_keys[0]
+        i += 1
+    if kinds[i] is not StateToObservation or transforms[i].in_keys[0] != state_key:
+        return None
+    observation = transforms[i]
+    i += 1
+    reward = None
+    if i < len(kinds) and isinstance(transforms[i], ForwardPenaltyReward):
+        reward = transforms[i]
+        i += 1
+    if kinds[i:] != [StepCounter, RewardSum]:
+        return None
+    counter, rsum = transforms[i:]
+    if counter.max_steps is not None or list(rsum.in_keys) != ["reward"]:
+        return None
+    base = env.base_env
+    gym_env = base._env
+    if base.batch_size.numel() != 1 or len(base.batch_size) > 1:
+        return None  # vector envs keep the stock collector (their info layout differs)
+    reader_keys = [
+        k for reader in base.info_dict_reader for k in getattr(reader, "keys", None) or []
+    ]
+    obs_keys = set(base.observation_spec.keys()) - {"observation"}
+    if set(reader_keys) != obs_keys:
+        return None
+    return _Layout(
+        gym_envs=[gym_env],
+        batch_shape=tuple(base.batch_size),
+        info_keys=reader_keys,
+        state_key=state_key,
+        observation=observation,
+        reward=reward,
+        reward_dtype=base.full_reward_spec_unbatched["reward"].dtype,
+        double_keys=set(transforms[0].in_keys),
+    )
+
+
+def _has_full_spec(policy: Any) -> bool:
+    spec = getattr(policy, "spec", None)
+    return spec is not None and all(v is not None for v in spec.values(True, True))
+
+
+class LeanCollector:
+    """Collects batches like :class:`torchrl.collectors.Collector`, at a fraction of its cost.
+
+    A drop-in for ``Collector(env, policy, frames_per_batch=..., total_frames=-1)`` on the envs
+    built by :func:`~torchrl_mbmf.envs.make_gym_state_env` (HalfCheetah with any thesis
+    reward, Pendulum, ...): iterating yields the same batches, key for key and value for
+    value (tested against the stock collector), but the per-step work is only the policy and
+    the gymnasium step. Everything the transform stack computes from the step outputs (float32
+    casts, the state/observation split, the reward transform, the step counter and the running
+    episode return) is computed once per batch over the whole batch, with the same
+    transforms' own functions.
+
+    The policy is called as the stock collector calls it (a tensordict of the current root
+    entries, under ``torch.no_grad()`` and ``ExplorationType.RANDOM``), except for a stock
+    :class:`~torchrl.modules.ProbabilisticActor` with a ``loc``/``scale`` parameter network,
+    which is sampled tensor-in tensor-out (:class:`ActorSampler`: same random numbers, same
+    actions) and whose ``action_log_prob`` is computed for the whole batch at the end, and
+    :class:`~torchrl.envs.utils.RandomPolicy`, whose spec is sampled directly.
+
+    Like the stock collector, it resets the env when it is built (unseeded: seed it with
+    ``env.set_seed`` before), calls a policy without a complete output spec once on that first
+    state, resets an episode that ends at once, and carries the episode in progress over to
+    the next batch. :meth:`supports` tells whether an env has the
+    layout this path knows; use the stock collector otherwise.
+
+    Args:
+        env: a real env from :func:`~torchrl_mbmf.envs.make_gym_state_env` (one copy,
+            ``num_envs=1``).
+        policy: a TensorDict module writing ``"action"`` (actor, planner or
+            :class:`~torchrl.envs.utils.RandomPolicy`).
+
+    Keyword Args:
+        frames_per_batch: real steps per batch.
+        total_frames: steps in total, ``-1`` for no end. Defaults to ``-1``.
+        exploration_type: the exploration mode the policy runs under. Defaults to
+            ``ExplorationType.RANDOM`` (the stock collector's default); another mode calls the
+            policy through its tensordict interface at every step.
+
+    Raises:
+        ValueError: if the env is not of a supported layout, or for a non-positive
+            ``frames_per_batch``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.collectors import LeanCollector
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> actor, _ = make_ppo_actor_critic(env, hidden_sizes=(8,))
+        >>> collector = LeanCollector(env, actor, frames_per_batch=16, total_frames=32)
+        >>> [batch["next", "reward"].shape for batch in collector]
+        [torch.Size([16, 1]), torch.Size([16, 1])]
+    """
+
+    def __init__(
+        self,
+        env: EnvBase,
+        policy: TensorDictModuleBase | Callable[[TensorDictBase], TensorDictBase],
+        *,
+        frames_per_batch: int,
+        total_frames: int = -1,
+        exploration_type: ExplorationType = ExplorationType.RANDOM,
+    ) -> None:
+        if isinstance(frames_per_batch, bool) or int(frames_per_batch) < 1:
+            raise ValueError(f"frames_per_batch must be an integer >= 1, got {frames_per_batch!r}")
+        if int(total_frames) != -1 and int(total_frames) < 1:
+            raise ValueError(f"total_frames must be -1 or >= 1, got {total_frames!r}")
+        layout = _layout(env)
+        if layout is None:
+            raise ValueError(
+                f"LeanCollector supports single envs built by make_gym_state_env / make_env "
+                f"(GymWrapper + DoubleToFloat, state/observation split, optional reward, "
+                f"StepCounter, RewardSum); got {env!r}: use torchrl.collectors.Collector"
+            )
+        self.env = env
+        self.policy = policy
+        self.frames_per_batch = int(frames_per_batch)
+        self.total_frames = int(total_frames)
+        self.times = CollectorTimes()
+        self._layout = layout
+        self._action_key = env.action_key
+        self._action_spec = env.full_action_spec_unbatched[self._action_key]
+        self.exploration_type = exploration_type
+        self._sampler: ActorSampler | None = None
+        self._random = isinstance(policy, RandomPolicy)
+        if isinstance(policy, ProbabilisticActor) and exploration_type == ExplorationType.RANDOM:
+            sampler = ActorSampler(policy)
+            keys = {*sampler.param_keys, self._action_key, "action_log_prob"}
+            if sampler.is_fast and len(sampler.param_keys) == 2 and set(policy.out_keys) == keys:
+                self._sampler = sampler
+        self._frames = 0
+        self._next_traj = 0
+        self._traj = 0
+        self._count = 0
+        self._running = np.float32(0.0)
+        # As the stock collector: reset now, and call a policy that declares no complete output
+        # spec once on the reset entries (the stock collector does so to find its output keys;
+        # a random policy or a planner draws random numbers there, and so must this one).
+        self._current = self._reset()
+        if self._sampler is None and not _has_full_spec(policy):
+            with torch.no_grad():
+                policy(self._root_td(*self._current))
+
+    @staticmethod
+    def supports(env: EnvBase) -> bool:
+        """Whether ``env`` has the layout the lean path knows.
+
+        Args:
+            env: any TorchRL env.
+
+        Examples:
+            >>> from torchrl_mbmf.collectors import LeanCollector
+            >>> from torchrl_mbmf.envs import make_env
+            >>> LeanCollector.supports(make_env("HalfCheetah-v5"))
+            True
+        """
+        return _layout(env) is not None
+
+    # ------------------------------------------------------------------ helpers
+    def _info_arrays(self, info: dict[str, Any]) -> list[np.ndarray]:
+        return [np.asarray(info[k], dtype=np.float64).reshape(-1) for k in self._layout.info_keys]
+
+    def _reset(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        obs, info = self._layout.gym_envs[0].reset()
+        self._traj = self._next_traj
+        self._next_traj += 1
+        self._count = 0
+        self._running = np.float32(0.0)
+        return np.asarray(obs, dtype=np.float64), self._info_arrays(info)
+
+    def _root_td(self, obs: np.ndarray, info: list[np.ndarray]) -> TensorDict:
+        """The root entries the stock env hands the policy at this step."""
+        lay = self._layout
+        state = torch.from_numpy(obs).to(torch.float32)
+        entries: dict[NestedKey, torch.Tensor] = {
+            lay.state_key: state,
+            lay.observation.out_keys[0]: lay.observation.observation(state),
+            "step_count": torch.tensor([self._count]),
+            "episode_reward": torch.tensor([self._running], dtype=torch.float32),
+        }
+        for key, value in zip(lay.info_keys, info, strict=True):
+            entries[key] = torch.from_numpy(value).to(torch.float32)
+        for key in DONE_KEYS:
+            entries[key] = torch.zeros(1, dtype=torch.bool)
+        return TensorDict(entries, batch_size=[])
+
+    # --------------------------------------------------------------------- loop
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        while self.total_frames == -1 or self._frames < self.total_frames:
+            yield self._collect()
+
+    def episode(self, max_steps: int = 100_000) -> TensorDictBase:
+        """Steps until the first episode end (or ``max_steps``) and returns those steps.
+
+        With a fresh collector this is ``env.rollout(max_steps, policy)`` on the seeded env
+        (tested equal); the collector's frame count is not advanced.
+
+        Args:
+            max_steps: the most steps. Defaults to ``100_000``.
+
+        Examples:
+            >>> from torchrl.envs.utils import ExplorationType
+            >>> from torchrl_mbmf.collectors import LeanCollector
+            >>> from torchrl_mbmf.envs import make_env
+            >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+            >>> env = make_env("Pendulum-v1", seed=0)
+            >>> actor, _ = make_ppo_actor_critic(env, hidden_sizes=(8,))
+            >>> collector = LeanCollector(env, actor, frames_per_batch=1,
+            ...                           exploration_type=ExplorationType.DETERMINISTIC)
+            >>> collector.episode().shape
+            torch.Size([200])
+        """
+        return self._collect(max_steps, stop_at_done=True)
+
+    def _collect(self, n: int | None = None, stop_at_done: bool = False) -> TensorDictBase:
+        lay = self._layout
+        gym_env = lay.gym_envs[0]
+        count_frames = n is None
+        n = self.frames_per_batch if n is None else int(n)
+        clock = time.perf_counter
+        t0 = clock()
+        obs, info = self._current
+        root_obs = np.empty((n, obs.shape[0]))
+        next_obs = np.empty((n, obs.shape[0]))
+        root_info = [np.empty((n, v.shape[0])) for v in info]
+        next_info = [np.empty((n, v.shape[0])) for v in info]
+        rewards = np.empty(n)
+        terminated = np.zeros(n, dtype=bool)
+        truncated = np.zeros(n, dtype=bool)
+        root_count = np.empty(n, dtype=np.int64)
+        traj = np.empty(n, dtype=np.int64)
+        start_return = self._running
+        actions: list[torch.Tensor] = []
+        outputs: list[Any] = []
+        act_s = 0.0
+        sampler = self._sampler
+        observation = lay.observation.observation
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            for t in range(n):
+                root_obs[t] = obs
+                for j, v in enumerate(info):
+                    root_info[j][t] = v
+                root_count[t] = self._count
+                traj[t] = self._traj
+                a0 = clock()
+                if sampler is not None:
+                    action, params = sampler.sample_with_params(
+                        observation(torch.from_numpy(obs).to(torch.float32))
+                    )
+                    outputs.append(params)
+                elif self._random:
+                    action = self.policy.action_spec.rand().get(self._action_key)
+                else:
+                    out = self.policy(self._root_td(obs, info))
+                    action = out.get(self._action_key)
+                    outputs.append(out)
+                act_s += clock() - a0
+                actions.append(action)
+                obs, reward, term, trunc, step_info = gym_env.step(action.numpy())
+                obs = np.asarray(obs, dtype=np.float64)
+                info = self._info_arrays(step_info)
+                next_obs[t] = obs
+                for j, v in enumerate(info):
+                    next_info[j][t] = v
+                rewards[t] = reward
+                terminated[t] = term
+                truncated[t] = trunc
+                self._count += 1
+                if term or trunc:
+                    obs, info = self._reset()
+                    if stop_at_done:
+                        n = t + 1
+                        break
+        self._current = (obs, info)
+        if n < rewards.shape[0]:
+            root_obs, next_obs, rewards = root_obs[:n], next_obs[:n], rewards[:n]
+            root_info, next_info = [v[:n] for v in root_info], [v[:n] for v in next_info]
+            terminated, truncated = terminated[:n], truncated[:n]
+            root_count, traj = root_count[:n], traj[:n]
+        batch = self._build_batch(
+            root_obs,
+            next_obs,
+            root_info,
+            next_info,
+            rewards,
+            terminated,
+            truncated,
+            root_count,
+            traj,
+            start_return,
+            actions,
+            outputs,
+        )
+        if not (terminated[-1] or truncated[-1]):
+            # the episode in progress carries its running return into the next batch
+            self._running = np.float32(batch.get(("next", "episode_reward"))[-1, 0].item())
+        if count_frames:
+            self._frames += n
+        self.times.act_s += act_s
+        self.times.env_s += clock() - t0 - act_s
+        return batch
+
+    def _build_batch(
+        self,
+        root_obs: np.ndarray,
+        next_obs: np.ndarray,
+        root_info: list[np.ndarray],
+        next_info: list[np.ndarray],
+        rewards: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        root_count: np.ndarray,
+        traj: np.ndarray,
+        start_return: np.float32,
+        actions: list[torch.Tensor],
+        outputs: list[Any],
+    ) -> TensorDictBase:
+        lay = self._layout
+        n = rewards.shape[0]
+        f32 = torch.float32
+        root_state = torch.from_numpy(root_obs).to(f32)
+        next_state = torch.from_numpy(next_obs).to(f32)
+        obs_key = lay.observation.out_keys[0]
+        root: dict[NestedKey, Any] = {
+            lay.state_key: root_state,
+            obs_key: lay.observation.observation(root_state),
+        }
+        nxt: dict[NestedKey, Any] = {
+            lay.state_key: next_state,
+            obs_key: lay.observation.observation(next_state),
+        }
+        for key, r_val, n_val in zip(lay.info_keys, root_info, next_info, strict=True):
+            root[key] = torch.from_numpy(r_val).to(f32)
+            nxt[key] = torch.from_numpy(n_val).to(f32)
+        action = torch.stack(actions)
+        root[self._action_key] = action
+        term = torch.from_numpy(terminated)[:, None]
+        trunc = torch.from_numpy(truncated)[:, None]
+        nxt["terminated"] = term
+        nxt["truncated"] = trunc
+        nxt["done"] = term | trunc
+        for key in DONE_KEYS:
+            root[key] = torch.zeros(n, 1, dtype=torch.bool)
+        count = torch.from_numpy(root_count)[:, None]
+        root["step_count"] = count
+        nxt["step_count"] = count + 1
+        root["collector"] = TensorDict({"traj_ids": torch.from_numpy(traj)}, batch_size=[n])
+        batch = TensorDict({**root, "next": TensorDict(nxt, batch_size=[n])}, batch_size=[n])
+        if lay.reward is not None:
+            reward = lay.reward.compute(batch, batch.get("next"))
+        else:
+            reward = torch.from_numpy(rewards).to(lay.reward_dtype)[:, None]
+        batch.set(("next", "reward"), reward)
+        # RewardSum's running return, accumulated in float32 one step at a time as it does
+        r = reward[:, 0].numpy().astype(np.float32)
+        ep_root = np.empty(n, dtype=np.float32)
+        ep_next = np.empty(n, dtype=np.float32)
+        running = np.float32(start_return)
+        for t in range(n):
+            if root_count[t] == 0:
+                running = np.float32(0.0)
+            ep_root[t] = running
+            running = np.float32(running + r[t])
+            ep_next[t] = running
+        batch.set("episode_reward", torch.from_numpy(ep_root).to(reward.dtype)[:, None])
+        batch.set(("next", "episode_reward"), torch.from_numpy(ep_next).to(reward.dtype)[:, None])
+        if self._sampler is not None:
+            params = [torch.stack(p) for p in zip(*outputs, strict=True)]
+            for key, value in zip(self._sampler.param_keys, params, strict=True):
+                batch.set(key, value)
+            batch.set("action_log_prob", self._sampler.distribution(*params).log_prob(action))
+        elif outputs:
+            stacked = torch.stack(outputs)
+            for key in stacked.keys(True, True):
+                if key not in batch.keys(True, True):
+                    batch.set(key, stacked.get(key))
+        return batch
+
+    def shutdown(self) -> None:
+        """Nothing to release (kept for the stock collector's interface)."""
