@@ -2,10 +2,23 @@
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDictBase
-from torchrl.objectives import ClipPPOLoss
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from tensordict.nn.utils import mappings
+from torch import Tensor, nn
+from torch import distributions as D
+from torchrl.modules import IndependentNormal, TanhNormal
+from torchrl.objectives import AUTO_LOSS_MASK_KEYS, ClipPPOLoss
 from torchrl.objectives.value import GAE
+from torchrl.objectives.value.functional import (
+    generalized_advantage_estimate,
+    vec_generalized_advantage_estimate,
+)
 
 #: Loss entries averaged into the logged statistics.
 PPO_STATS: tuple[str, ...] = ("loss_objective", "loss_critic", "loss_entropy", "kl_approx")
@@ -83,3 +96,488 @@ def ppo_update(
                 if value is not None:
                     sums[key] = sums.get(key, 0.0) + float(value.detach())
     return {key: value / steps for key, value in sums.items()}
+
+
+class FusedPPOUpdate:
+    """The :func:`ppo_update` iteration in plain tensor operations.
+
+    Computes exactly what :func:`ppo_update` computes with the stock
+    :class:`~torchrl.objectives.ClipPPOLoss` and :class:`~torchrl.objectives.value.GAE`, on the
+    very parameters those modules hold (so the optimiser, checkpoints and the collector's policy
+    are shared with the stock path): GAE once on the ``[*B, T]`` batch (the stock recursion of
+    :mod:`torchrl.objectives.value.functional`, with ``done``/``terminated`` handled as GAE does),
+    then ``epochs`` passes over a fresh ``torch.randperm`` of the flattened batch, each minibatch
+    taking one clipped-surrogate + entropy + critic step with gradient-norm clipping. The
+    advantage is standardised per minibatch as ``ClipPPOLoss(normalize_advantage=True)`` does
+    (unbiased std, clamped at the float32 resolution); the ``TanhNormal`` entropy is the stock
+    one-sample reparameterised Monte-Carlo estimate (one ``normal_`` draw per minibatch, in the
+    stock order), the ``IndependentNormal`` entropy is analytic. Random draws (the permutations
+    and the entropy samples) follow the stock order, so with one seed both paths take the same
+    steps (tested against :func:`ppo_update`); the stock path stays the reference.
+
+    What it skips: the tensordict indexing and cloning per minibatch, the distribution objects,
+    the per-minibatch host syncs of the logged statistics (they are gathered on device and
+    read once per iteration).
+
+    Supports the networks of :func:`~torchrl_mbmf.modules.make_ppo_actor_critic`: an actor
+    whose ``TensorDictModule`` writes ``["loc", "scale"]`` (a loc network followed by
+    :class:`~tensordict.nn.AddStateIndependentNormalScale`) with a ``TanhNormal`` or
+    ``IndependentNormal`` distribution, and a critic ``ValueOperator`` on one observation key.
+    Unsupported loss settings (value clipping, a delayed actor, masks, composite actions, ...)
+    raise ``ValueError``.
+
+    Args:
+        loss: the stock ``ClipPPOLoss`` (``normalize_advantage`` either way).
+        gae: the ``GAE`` advantage module over ``loss``'s critic.
+        optimizer: the optimiser over ``loss.parameters()``.
+
+    Keyword Args:
+        epochs: passes over the batch. Defaults to 4.
+        minibatch_size: transitions per gradient step. Defaults to 32.
+        max_grad_norm: gradient-norm clip, ``None`` for none. Defaults to 0.5.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, make_test_ppo
+        >>> loss, gae, batch = make_test_ppo(frames=64)
+        >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
+        >>> update = FusedPPOUpdate(loss, gae, optim, epochs=1, minibatch_size=32)
+        >>> sorted(update(batch))
+        ['kl_approx', 'loss_critic', 'loss_entropy', 'loss_objective']
+    """
+
+    def __init__(
+        self,
+        loss: ClipPPOLoss,
+        gae: GAE,
+        optimizer: torch.optim.Optimizer,
+        *,
+        epochs: int = 4,
+        minibatch_size: int = 32,
+        max_grad_norm: float | None = 0.5,
+    ) -> None:
+        if not isinstance(loss, ClipPPOLoss):
+            raise ValueError(f"FusedPPOUpdate expects a ClipPPOLoss, got {type(loss).__name__}")
+        if not isinstance(gae, GAE):
+            raise ValueError(f"FusedPPOUpdate expects a GAE module, got {type(gae).__name__}")
+        if epochs < 1 or minibatch_size < 1:
+            raise ValueError(
+                f"epochs and minibatch_size must be >= 1, got {epochs} and {minibatch_size}"
+            )
+        _check_loss(loss)
+        _check_gae(gae, loss)
+        self.loss = loss
+        self.gae = gae
+        self.optimizer = optimizer
+        self.epochs = int(epochs)
+        self.minibatch_size = int(minibatch_size)
+        self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
+        self.params = list(loss.parameters())
+        keys = loss.tensor_keys
+        self.action_key = keys.action
+        self.log_prob_key = keys.sample_log_prob
+        self.value_key = keys.value
+        self.reward_key = gae.tensor_keys.reward
+        self.done_key = gae.tensor_keys.done
+        self.terminated_key = gae.tensor_keys.terminated
+        policy, dist_module = _policy_parts(loss.actor_network)
+        self.observation_key = policy.in_keys[0]
+        net = policy.module
+        if not (
+            isinstance(net, nn.Sequential) and isinstance(net[-1], AddStateIndependentNormalScale)
+        ):
+            raise ValueError(
+                "FusedPPOUpdate expects the actor's loc/scale module to be "
+                "Sequential(loc_net, AddStateIndependentNormalScale) (see make_ppo_actor_critic)"
+            )
+        actor_owned = _owned_params(loss.actor_network, loss.actor_network_params)
+        self._loc_layers = _plain_layers(net[0] if len(net) == 2 else net[:-1], actor_owned)
+        self._scale_module = net[-1]
+        self._log_std = actor_owned[id(net[-1].state_independent_scale)]
+        self._scale_map = mappings(self._scale_module.scale_mapping)
+        critic = loss.critic_network
+        if list(critic.in_keys) != [self.observation_key] or list(critic.out_keys) != [
+            self.value_key
+        ]:
+            raise ValueError(
+                f"FusedPPOUpdate expects a critic reading {[self.observation_key]} and writing "
+                f"{[self.value_key]}, got in_keys={critic.in_keys} out_keys={critic.out_keys}"
+            )
+        critic_owned = _owned_params(critic, loss.critic_network_params)
+        self._value_layers = _plain_layers(critic.module, critic_owned)
+        dist_class = dist_module.distribution_class
+        kwargs = dict(dist_module.distribution_kwargs or {})
+        if issubclass(dist_class, TanhNormal):
+            if kwargs.get("tanh_loc", False) or kwargs.get("event_dims", 1) != 1:
+                raise ValueError("FusedPPOUpdate expects TanhNormal(tanh_loc=False, event_dims=1)")
+            probe = dist_class(torch.zeros(1), torch.ones(1), **kwargs)
+            self._transform = probe.transforms[0]
+            self._tanh_only = isinstance(self._transform, D.TanhTransform)
+            self.tanh = True
+        elif issubclass(dist_class, IndependentNormal):
+            if kwargs.get("tanh_loc", False) or kwargs.get("event_dim", 1) != 1:
+                raise ValueError(
+                    "FusedPPOUpdate expects IndependentNormal(tanh_loc=False, event_dim=1)"
+                )
+            self.tanh = False
+        else:
+            raise ValueError(
+                "FusedPPOUpdate supports TanhNormal and IndependentNormal actors, got "
+                f"{dist_class.__name__}"
+            )
+
+    # ------------------------------------------------------------------ pieces
+    @staticmethod
+    def _mlp(layers: list[Any], x: Tensor) -> Tensor:
+        for layer in layers:
+            x = layer[0](x, layer[1], layer[2]) if isinstance(layer, tuple) else layer(x)
+        return x
+
+    def _dist_params(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        loc = self._mlp(self._loc_layers, obs)
+        scale = self._log_std.expand_as(loc)
+        scale = self._scale_map(scale).clamp_min(self._scale_module.scale_lb)
+        return loc, scale
+
+    def value(self, obs: Tensor) -> Tensor:
+        """The critic's ``state_value`` of observations ``[..., obs_dim]`` (``[..., 1]``)."""
+        return self._mlp(self._value_layers, obs)
+
+    def advantage(self, batch: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """GAE of a ``[*B, T]`` batch, as the stock module computes it (no gradient).
+
+        Args:
+            batch: a collector batch (observation, ``next`` observation, reward, done,
+                terminated).
+
+        Returns:
+            ``(advantage, value_target)``, each ``[*B, T, 1]``.
+        """
+        gae = self.gae
+        obs = batch.get(self.observation_key)
+        nxt = batch.get("next")
+        with torch.no_grad():
+            values = self.value(torch.stack([obs, nxt.get(self.observation_key)], 0))
+            value, next_value = values[0], values[1]
+            reward = nxt.get(self.reward_key)
+            done = nxt.get(self.done_key)
+            terminated = nxt.get(self.terminated_key, default=done)
+            gamma = gae.gamma.to(reward.device)
+            lmbda = gae.lmbda.to(reward.device)
+            fn = (
+                vec_generalized_advantage_estimate
+                if gae.vectorized
+                else generalized_advantage_estimate
+            )
+            return fn(
+                gamma,
+                lmbda,
+                value,
+                next_value,
+                reward,
+                done=done,
+                terminated=terminated,
+                time_dim=batch.ndim - 1,
+            )
+
+    def _prepare(self, batch: TensorDictBase) -> dict[str, Tensor]:
+        if batch.ndim < 1:
+            raise ValueError(f"expected a batch with a time dimension, got {batch.batch_size}")
+        for key in AUTO_LOSS_MASK_KEYS:
+            if batch.get(key, None) is not None:
+                raise ValueError(f"FusedPPOUpdate does not support masked batches (found {key!r})")
+        advantage, value_target = self.advantage(batch)
+        data = {
+            "obs": batch.get(self.observation_key).reshape(
+                -1, batch.get(self.observation_key).shape[-1]
+            ),
+            "advantage": advantage.reshape(-1, 1),
+            "value_target": value_target.reshape(-1, 1),
+            "log_prob": batch.get(self.log_prob_key).reshape(-1),
+        }
+        action = batch.get(self.action_key)
+        action = action.reshape(-1, action.shape[-1])
+        if self.tanh:
+            # The stored action is fixed: its pre-tanh value and log-det-Jacobian are
+            # constants of the iteration (computed as TanhNormal.log_prob computes them).
+            with torch.no_grad():
+                t = self._transform
+                pre = t.inv(action)
+                data["action"] = pre
+                data["log_det"] = _sum_last(t.log_abs_det_jacobian(pre, action), pre)
+        else:
+            data["action"] = action
+        return data
+
+    def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The ``ClipPPOLoss`` terms of one minibatch of tensors.
+
+        Args:
+            mb: ``obs [N, obs_dim]``, ``action [N, A]`` (for a ``TanhNormal`` its pre-tanh
+                value, with ``log_det [N]``), ``log_prob [N]``, ``advantage [N, 1]`` and
+                ``value_target [N, 1]``.
+
+        Returns:
+            ``(loss_objective, loss_critic, loss_entropy, kl_approx)`` (``kl_approx`` detached).
+        """
+        loss = self.loss
+        advantage = mb["advantage"]
+        if loss.normalize_advantage and advantage.numel() > 1:
+            advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
+        loc, scale = self._dist_params(mb["obs"])
+        log_prob = _normal_log_prob(mb["action"], loc, scale).sum(-1)
+        if self.tanh:
+            log_prob = log_prob - mb["log_det"]
+        prev = mb["log_prob"]
+        log_weight = (log_prob - prev).unsqueeze(-1)
+        kl_approx = (prev - log_prob).unsqueeze(-1).detach().mean()
+        gain1 = log_weight.exp() * advantage
+        eps = loss.clip_epsilon
+        log_weight_clip = log_weight.clamp((-eps).log1p(), eps.log1p())
+        gain2 = log_weight_clip.exp() * advantage
+        gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
+        loss_objective = (-gain).mean()
+        if self.tanh:
+            noise = torch.empty(
+                (loss.samples_mc_entropy, *loc.shape), dtype=loc.dtype, device=loc.device
+            ).normal_()
+            pre = loc + noise * scale
+            lp = _normal_log_prob(pre, loc, scale).sum(-1)
+            if self._tanh_only:
+                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
+            else:
+                log_det = self._transform.log_abs_det_jacobian(pre, self._transform(pre))
+            lp = lp - _sum_last(log_det, pre)
+            entropy = -lp.mean(0)
+        else:
+            entropy = (0.5 + 0.5 * _LOG2PI + scale.log()).sum(-1)
+        loss_entropy = (-loss.entropy_coeff * entropy.unsqueeze(-1)).mean()
+        value = self.value(mb["obs"])
+        loss_critic = _DISTANCES[loss.loss_critic_type](mb["value_target"], value, reduction="none")
+        loss_critic = (loss.critic_coeff * loss_critic).mean()
+        return loss_objective, loss_critic, loss_entropy, kl_approx
+
+    def __call__(self, batch: TensorDictBase) -> dict[str, float]:
+        """One PPO iteration on a collected ``[*B, T]`` batch.
+
+        Returns:
+            The mean of each of :data:`PPO_STATS` over the iteration (one host sync).
+        """
+        data = self._prepare(batch)
+        n = data["obs"].shape[0]
+        stats = []
+        params = self.params
+        optimizer = self.optimizer
+        for _ in range(self.epochs):
+            perm = torch.randperm(n)
+            for i in range(0, n, self.minibatch_size):
+                idx = perm[i : i + self.minibatch_size]
+                mb = {k: v[idx] for k, v in data.items()}
+                objective, critic, entropy, kl = self.losses(mb)
+                total = objective + critic + entropy
+                optimizer.zero_grad(set_to_none=True)
+                total.backward()
+                if self.max_grad_norm is not None:
+                    torch.nn.utils.clip_grad_norm_(params, self.max_grad_norm)
+                optimizer.step()
+                stats.append(
+                    torch.stack([objective.detach(), critic.detach(), entropy.detach(), kl])
+                )
+        rows = torch.stack(stats).tolist()
+        sums = [0.0] * len(PPO_STATS)
+        for row in rows:
+            for j, value in enumerate(row):
+                sums[j] += value
+        return {key: s / len(rows) for key, s in zip(PPO_STATS, sums, strict=True)}
+
+
+_LOG2 = math.log(2.0)
+_LOG2PI = math.log(2.0 * math.pi)
+_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+#: ``torch.finfo(torch.float).resolution``: the std floor of torchrl's advantage standardisation.
+_RESOLUTION = torch.finfo(torch.float).resolution
+
+
+def _normal_log_prob(value: Tensor, loc: Tensor, scale: Tensor) -> Tensor:
+    # torch.distributions.Normal.log_prob, term for term.
+    var = scale**2
+    return -((value - loc) ** 2) / (2 * var) - scale.log() - _LOG_SQRT_2PI
+
+
+def _sum_last(log_det: Tensor, like: Tensor) -> Tensor:
+    return log_det.sum(-1) if log_det.dim() == like.dim() else log_det
+
+
+def _plain_layers(net: nn.Module, owned: dict[int, Tensor]) -> list[Any]:
+    """``Linear`` layers as ``(F.linear, weight, bias)``, parameter-free layers as callables.
+
+    ``owned`` maps each module parameter to the tensor the loss trains (they differ when the
+    loss module was deep-copied); an opaque module with parameters is run as it is and must
+    hold the trained tensors itself.
+    """
+    if isinstance(net, nn.Linear):
+        return [(F.linear, owned[id(net.weight)], owned[id(net.bias)])]
+    if not isinstance(net, nn.Sequential):
+        for param in net.parameters():
+            if owned[id(param)] is not param:
+                raise ValueError(
+                    f"FusedPPOUpdate runs {type(net).__name__} as it is, but its parameters are "
+                    "not the tensors the loss trains (was the loss deep-copied?)"
+                )
+        return [net]
+    layers: list[Any] = []
+    for module in net.children():
+        layers += _plain_layers(module, owned)
+    return layers
+
+
+def _owned_params(module: nn.Module, params: Any) -> dict[int, Tensor]:
+    if params is None:  # a non-functional loss trains the module's own parameters
+        return {id(p): p for p in module.parameters()}
+    return {id(p): params.get(tuple(name.split("."))) for name, p in module.named_parameters()}
+
+
+def _policy_parts(actor: nn.Module) -> tuple[TensorDictModule, nn.Module]:
+    policy = dist_module = None
+    for module in actor.modules():
+        if isinstance(module, TensorDictModule) and list(module.out_keys) == ["loc", "scale"]:
+            policy = module
+        if getattr(module, "distribution_class", None) is not None and dist_module is None:
+            dist_module = module
+    if policy is None or dist_module is None or len(policy.in_keys) != 1:
+        raise ValueError(
+            "FusedPPOUpdate expects a ProbabilisticActor whose TensorDictModule reads one "
+            "observation key and writes ['loc', 'scale'] (see make_ppo_actor_critic)"
+        )
+    return policy, dist_module
+
+
+_DISTANCES = {"l2": F.mse_loss, "l1": F.l1_loss, "smooth_l1": F.smooth_l1_loss}
+
+
+def _check_loss(loss: ClipPPOLoss) -> None:
+    unsupported = {
+        "clip_value": loss.clip_value is not None,
+        "delay_actor": bool(loss.delay_actor),
+        "max_importance_ratio": loss.max_importance_ratio is not None,
+        "advantage_norm": loss.advantage_norm is not None,
+        "normalize_advantage_exclude_dims": bool(loss.normalize_advantage_exclude_dims),
+        "entropy_bonus=False": not loss.entropy_bonus,
+        "per-head entropy_coeff": getattr(loss, "_entropy_coeff_map", None) is not None,
+        "no critic loss": loss.critic_coeff is None or not bool(loss.critic_coeff > 0),
+        f"reduction={loss.reduction!r}": loss.reduction != "mean",
+        f"loss_critic_type={loss.loss_critic_type!r}": loss.loss_critic_type not in _DISTANCES,
+    }
+    bad = [name for name, flag in unsupported.items() if flag]
+    if bad:
+        raise ValueError(f"FusedPPOUpdate does not support ClipPPOLoss with {', '.join(bad)}")
+    if not isinstance(loss.tensor_keys.action, str) or not isinstance(
+        loss.tensor_keys.sample_log_prob, str
+    ):
+        raise ValueError("FusedPPOUpdate expects a single action and log-prob key")
+
+
+def _check_gae(gae: GAE, loss: ClipPPOLoss) -> None:
+    bad = []
+    if gae.shifted:
+        bad.append("shifted=True")
+    if gae.average_gae:
+        bad.append("average_gae=True")
+    if getattr(gae, "auto_reset_env", False):
+        bad.append("auto_reset_env=True")
+    if gae.value_network is None:
+        bad.append("no value network")
+    elif gae.value_network is not loss.critic_network and list(
+        gae.value_network.parameters()
+    ) != list(loss.critic_network.parameters()):
+        bad.append("a value network other than the loss critic")
+    if bad:
+        raise ValueError(f"FusedPPOUpdate does not support GAE with {', '.join(bad)}")
+
+
+def make_test_ppo(
+    frames: int = 64,
+    num_envs: int | None = None,
+    obs_dim: int = 5,
+    action_dim: int = 2,
+    hidden: int = 16,
+    distribution: str = "tanh_normal",
+) -> tuple[ClipPPOLoss, GAE, TensorDictBase]:
+    """A small ``ClipPPOLoss``, its ``GAE`` and a random rollout batch, for examples and tests.
+
+    The batch carries done/terminated/truncated flags (about 5% each) and log-probabilities of
+    its actions under the actor, as a collector batch does.
+
+    Args:
+        frames: time steps per env. Defaults to 64.
+        num_envs: a leading env dimension (``[num_envs, frames]``), ``None`` for ``[frames]``.
+        obs_dim: observation size. Defaults to 5.
+        action_dim: action size (bounds ``[-1, 1]``). Defaults to 2.
+        hidden: hidden width (two layers). Defaults to 16.
+        distribution: ``"tanh_normal"`` or ``"normal"``, as in
+            :func:`~torchrl_mbmf.modules.make_ppo_actor_critic`.
+
+    Returns:
+        ``(loss, gae, batch)``.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.ppo import make_test_ppo
+        >>> loss, gae, batch = make_test_ppo(frames=8, num_envs=2)
+        >>> batch.batch_size
+        torch.Size([2, 8])
+    """
+    from tensordict import TensorDict
+    from torchrl.data import Bounded, Composite, Unbounded
+    from torchrl.envs import EnvBase
+
+    from torchrl_mbmf.modules import make_ppo_actor_critic
+
+    class _SpecOnly(EnvBase):
+        def __init__(self) -> None:
+            super().__init__()
+            self.observation_spec = Composite(observation=Unbounded((obs_dim,)))
+            self.action_spec = Bounded(-1.0, 1.0, (action_dim,))
+            self.reward_spec = Unbounded((1,))
+
+        def _reset(self, tensordict):  # pragma: no cover - specs only
+            raise NotImplementedError
+
+        def _step(self, tensordict):  # pragma: no cover - specs only
+            raise NotImplementedError
+
+        def _set_seed(self, seed):  # pragma: no cover - specs only
+            return seed
+
+    actor, critic = make_ppo_actor_critic(
+        _SpecOnly(), hidden_sizes=(hidden, hidden), distribution=distribution
+    )
+    loss = ClipPPOLoss(
+        actor,
+        critic,
+        clip_epsilon=0.2,
+        entropy_coeff=1e-4,
+        critic_coeff=0.5,
+        normalize_advantage=True,
+    )
+    gae = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False)
+    shape = (frames,) if num_envs is None else (num_envs, frames)
+    obs = torch.randn(*shape, obs_dim)
+    next_obs = torch.cat([obs[..., 1:, :], torch.randn(*shape[:-1], 1, obs_dim)], -2)
+    terminated = torch.rand(*shape, 1) < 0.05
+    truncated = (torch.rand(*shape, 1) < 0.05) & ~terminated
+    batch = TensorDict(
+        {
+            "observation": obs,
+            "next": {
+                "observation": next_obs,
+                "reward": torch.randn(*shape, 1),
+                "terminated": terminated,
+                "truncated": truncated,
+                "done": terminated | truncated,
+            },
+        },
+        batch_size=shape,
+    )
+    with torch.no_grad():
+        actor(batch)
+    return loss, gae, batch
