@@ -173,6 +173,7 @@ class FusedPPOUpdate:
         self.minibatch_size = int(minibatch_size)
         self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
         self.params = list(loss.parameters())
+        self._flat: _FlatAdam | None = None
         keys = loss.tensor_keys
         self.action_key = keys.action
         self.log_prob_key = keys.sample_log_prob
@@ -365,30 +366,185 @@ class FusedPPOUpdate:
         """
         data = self._prepare(batch)
         n = data["obs"].shape[0]
+        mb_size = self.minibatch_size
+        flat = self._flat_adam()
         stats = []
-        params = self.params
-        optimizer = self.optimizer
         for _ in range(self.epochs):
             perm = torch.randperm(n)
-            for i in range(0, n, self.minibatch_size):
-                idx = perm[i : i + self.minibatch_size]
-                mb = {k: v[idx] for k, v in data.items()}
+            # One gather per epoch; the minibatches are then contiguous row slices of it.
+            shuffled = {k: v[perm] for k, v in data.items()}
+            for i in range(0, n, mb_size):
+                mb = {k: v[i : i + mb_size] for k, v in shuffled.items()}
                 objective, critic, entropy, kl = self.losses(mb)
                 total = objective + critic + entropy
-                optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                if self.max_grad_norm is not None:
-                    torch.nn.utils.clip_grad_norm_(params, self.max_grad_norm)
-                optimizer.step()
+                if flat is None:
+                    self.optimizer.zero_grad(set_to_none=True)
+                    total.backward()
+                    if self.max_grad_norm is not None:
+                        torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
+                    self.optimizer.step()
+                else:
+                    flat.grad.zero_()
+                    total.backward()
+                    flat.step(self.max_grad_norm)
                 stats.append(
                     torch.stack([objective.detach(), critic.detach(), entropy.detach(), kl])
                 )
+        if flat is not None:
+            flat.write_steps()
         rows = torch.stack(stats).tolist()
         sums = [0.0] * len(PPO_STATS)
         for row in rows:
             for j, value in enumerate(row):
                 sums[j] += value
         return {key: s / len(rows) for key, s in zip(PPO_STATS, sums, strict=True)}
+
+    def _flat_adam(self) -> _FlatAdam | None:
+        """The one-buffer Adam over the loss parameters, or ``None`` for ``optimizer.step()``."""
+        flat = self._flat
+        if flat is not None and flat.bound():
+            flat.read_steps()
+            return flat
+        self._flat = _FlatAdam.build(self.optimizer, self.params)
+        return self._flat
+
+
+class _FlatAdam:
+    """``torch.optim.Adam`` (single-tensor path) on one flat buffer of all parameters.
+
+    The parameters, their gradients and the optimiser's ``exp_avg``/``exp_avg_sq`` become views
+    of four flat buffers, so one Adam step or one gradient-norm clip is a handful of operations
+    instead of a handful per parameter. Every operation is elementwise with the scalars the
+    stock step computes (and the clip uses the per-parameter norms ``clip_grad_norm_`` uses), so
+    the results are bit-identical to ``clip_grad_norm_`` + ``Adam.step()``; the optimiser's
+    state stays its own (views), so ``optimizer.step()``, ``state_dict()`` and checkpoints keep
+    working. Built only for a plain ``Adam`` (one group, no weight decay/amsgrad/maximize,
+    not capturable/differentiable/fused, float ``lr``).
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer, params: list[Tensor]) -> None:
+        self.optimizer = optimizer
+        self.params = params
+        total = sum(p.numel() for p in params)
+        ref = params[0]
+        self.param = torch.empty(total, dtype=ref.dtype, device=ref.device)
+        self.grad = torch.zeros_like(self.param)
+        self.exp_avg = torch.zeros_like(self.param)
+        self.exp_avg_sq = torch.zeros_like(self.param)
+        views: dict[str, list[Tensor]] = {"param": [], "grad": [], "exp_avg": [], "exp_avg_sq": []}
+        offset = 0
+        for p in params:
+            size = p.numel()
+            for name in views:
+                views[name].append(getattr(self, name)[offset : offset + size].view_as(p))
+            offset += size
+        self.views = views
+        state = optimizer.state
+        steps = []
+        with torch.no_grad():
+            for i, p in enumerate(params):
+                views["param"][i].copy_(p)
+                p.data = views["param"][i]
+                p.grad = views["grad"][i]
+                st = state[p]
+                if len(st) == 0:
+                    st["step"] = torch.tensor(0.0, dtype=_step_dtype())
+                else:
+                    views["exp_avg"][i].copy_(st["exp_avg"])
+                    views["exp_avg_sq"][i].copy_(st["exp_avg_sq"])
+                st["exp_avg"] = views["exp_avg"][i]
+                st["exp_avg_sq"] = views["exp_avg_sq"][i]
+                steps.append(st["step"])
+        self.steps = steps
+        self.step_count = 0.0
+        self.read_steps()
+
+    @classmethod
+    def build(cls, optimizer: torch.optim.Optimizer, params: list[Tensor]) -> _FlatAdam | None:
+        """A flat Adam over ``params`` if ``optimizer`` is a plain Adam over exactly them."""
+        if type(optimizer) is not torch.optim.Adam or len(optimizer.param_groups) != 1:
+            return None
+        group = optimizer.param_groups[0]
+        plain = (
+            group["weight_decay"] == 0
+            and not group["amsgrad"]
+            and not group["maximize"]
+            and not group["capturable"]
+            and not group["differentiable"]
+            and not group["fused"]
+            and not group.get("decoupled_weight_decay", False)
+            and isinstance(group["lr"], float)
+            and all(isinstance(b, float) for b in group["betas"])
+        )
+        if not plain or [id(p) for p in group["params"]] != [id(p) for p in params]:
+            return None
+        if len({(p.dtype, p.device) for p in params}) != 1 or any(p.is_complex() for p in params):
+            return None
+        state = optimizer.state
+        if any(len(state[p]) not in (0, 3) for p in params) or any(
+            not (p.is_contiguous() and p.requires_grad) for p in params
+        ):
+            return None
+        counts = {float(state[p]["step"]) for p in params if len(state[p])}
+        if len(counts) > 1 or (counts and any(len(state[p]) == 0 for p in params)):
+            return None
+        return cls(optimizer, params)
+
+    def bound(self) -> bool:
+        """Whether the parameters, gradients and optimiser state are still the flat views."""
+        state = self.optimizer.state
+        for i, p in enumerate(self.params):
+            st = state.get(p)
+            if (
+                p.data_ptr() != self.views["param"][i].data_ptr()
+                or p.grad is None
+                or p.grad.data_ptr() != self.views["grad"][i].data_ptr()
+                or st is None
+                or st.get("exp_avg") is not self.views["exp_avg"][i]
+                or st.get("exp_avg_sq") is not self.views["exp_avg_sq"][i]
+                or st.get("step") is not self.steps[i]
+            ):
+                return False
+        return True
+
+    def read_steps(self) -> None:
+        """Takes the step count from the optimiser state (it may have stepped on its own)."""
+        counts = {float(t) for t in self.steps}
+        if len(counts) != 1:
+            raise RuntimeError(f"the Adam parameters have different step counts {counts}")
+        self.step_count = counts.pop()
+
+    def write_steps(self) -> None:
+        """Writes the step count back to the optimiser state."""
+        for t in self.steps:
+            t.fill_(self.step_count)
+
+    @torch.no_grad()
+    def step(self, max_grad_norm: float | None) -> None:
+        """``clip_grad_norm_(params, max_grad_norm)`` then ``optimizer.step()``."""
+        grad = self.grad
+        if max_grad_norm is not None:
+            norms = torch._foreach_norm(self.views["grad"], 2.0)
+            total_norm = torch.linalg.vector_norm(torch.stack(norms), 2.0)
+            grad.mul_(torch.clamp(max_grad_norm / (total_norm + 1e-6), max=1.0))
+        group = self.optimizer.param_groups[0]
+        lr = group["lr"]
+        beta1, beta2 = group["betas"]
+        self.step_count += 1.0
+        step = self.step_count
+        self.exp_avg.lerp_(grad, 1 - beta1)
+        self.exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        bias_correction1 = 1 - beta1**step
+        bias_correction2 = 1 - beta2**step
+        step_size = lr / bias_correction1
+        bias_correction2_sqrt = bias_correction2**0.5
+        denom = (self.exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(group["eps"])
+        self.param.addcdiv_(self.exp_avg, denom, value=-step_size)
+
+
+def _step_dtype() -> torch.dtype:
+    # torch.optim's scalar dtype for the ``step`` state: float64 when that is the default.
+    return torch.float64 if torch.get_default_dtype() == torch.float64 else torch.float32
 
 
 _LOG2 = math.log(2.0)
