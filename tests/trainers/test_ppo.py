@@ -1,0 +1,105 @@
+"""The fused PPO update takes the steps the stock ppo_update (ClipPPOLoss + GAE) takes."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from torchrl.objectives.value import GAE
+
+from torchrl_mbmf.trainers.ppo import PPO_STATS, FusedPPOUpdate, make_test_ppo, ppo_update
+
+
+def _pair(distribution: str, num_envs: int | None, frames: int = 64):
+    """Two identical (loss, gae, optimiser) triples and one batch."""
+    out = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        loss, gae, batch = make_test_ppo(
+            frames=frames, num_envs=num_envs, obs_dim=5, action_dim=3, distribution=distribution
+        )
+        out.append((loss, gae, torch.optim.Adam(loss.parameters(), lr=1e-3)))
+    return out[0], out[1], batch
+
+
+@pytest.mark.parametrize("num_envs", [None, 2])
+@pytest.mark.parametrize("distribution", ["tanh_normal", "normal"])
+def test_gae_matches_torchrl(distribution, num_envs):
+    (loss, gae, optim), _, batch = _pair(distribution, num_envs)
+    assert batch["next", "terminated"].any() and batch["next", "truncated"].any()
+    fused = FusedPPOUpdate(loss, gae, optim)
+    advantage, value_target = fused.advantage(batch)
+    stock = gae(batch.clone())
+    torch.testing.assert_close(advantage, stock["advantage"], rtol=0, atol=0)
+    torch.testing.assert_close(value_target, stock["value_target"], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("num_envs", [None, 2])
+@pytest.mark.parametrize("distribution", ["tanh_normal", "normal"])
+def test_fused_iteration_is_bit_identical_to_ppo_update(distribution, num_envs):
+    (loss_a, gae_a, optim_a), (loss_b, gae_b, optim_b), batch = _pair(distribution, num_envs)
+    fused = FusedPPOUpdate(loss_b, gae_b, optim_b, epochs=2, minibatch_size=16)
+    for seed in (1, 2):  # the second iteration starts from a non-empty Adam state
+        torch.manual_seed(seed)
+        stock_stats = ppo_update(loss_a, gae_a, optim_a, batch.clone(), epochs=2, minibatch_size=16)
+        torch.manual_seed(seed)
+        fused_stats = fused(batch.clone())
+        assert list(fused_stats) == list(PPO_STATS)
+        assert fused_stats == stock_stats
+    for a, b in zip(loss_a.parameters(), loss_b.parameters(), strict=True):
+        assert torch.equal(a, b)
+    state_a, state_b = optim_a.state_dict()["state"], optim_b.state_dict()["state"]
+    for i in state_a:
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(state_a[i][key], state_b[i][key])
+
+
+def test_rng_consumption_matches():
+    (loss_a, gae_a, optim_a), (loss_b, gae_b, optim_b), batch = _pair("tanh_normal", None)
+    torch.manual_seed(3)
+    ppo_update(loss_a, gae_a, optim_a, batch.clone(), epochs=1, minibatch_size=16)
+    after_stock = torch.rand(3)
+    torch.manual_seed(3)
+    FusedPPOUpdate(loss_b, gae_b, optim_b, epochs=1, minibatch_size=16)(batch.clone())
+    assert torch.equal(torch.rand(3), after_stock)
+
+
+def test_stock_and_fused_steps_can_alternate():
+    """The optimiser state stays the optimiser's: stock steps after fused ones still match."""
+    (loss_a, gae_a, optim_a), (loss_b, gae_b, optim_b), batch = _pair("tanh_normal", None)
+    fused = FusedPPOUpdate(loss_b, gae_b, optim_b, epochs=1, minibatch_size=16)
+    for seed, use_fused in ((1, True), (2, False), (3, True)):
+        torch.manual_seed(seed)
+        ppo_update(loss_a, gae_a, optim_a, batch.clone(), epochs=1, minibatch_size=16)
+        torch.manual_seed(seed)
+        if use_fused:
+            fused(batch.clone())
+        else:
+            ppo_update(loss_b, gae_b, optim_b, batch.clone(), epochs=1, minibatch_size=16)
+    for a, b in zip(loss_a.parameters(), loss_b.parameters(), strict=True):
+        assert torch.equal(a, b)
+    # a reloaded optimiser state is picked up again
+    optim_b.load_state_dict(copy.deepcopy(optim_a.state_dict()))
+    torch.manual_seed(4)
+    ppo_update(loss_a, gae_a, optim_a, batch.clone(), epochs=1, minibatch_size=16)
+    torch.manual_seed(4)
+    fused(batch.clone())
+    for a, b in zip(loss_a.parameters(), loss_b.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_rejects_unsupported_settings():
+    loss, gae, _ = make_test_ppo(frames=8)
+    optim = torch.optim.Adam(loss.parameters())
+    with pytest.raises(ValueError, match="ClipPPOLoss"):
+        FusedPPOUpdate(gae, gae, optim)
+    loss.clip_value = torch.tensor(0.2)
+    with pytest.raises(ValueError, match="clip_value"):
+        FusedPPOUpdate(loss, gae, optim)
+    loss, gae, _ = make_test_ppo(frames=8)
+    shifted = GAE(gamma=0.99, lmbda=0.95, value_network=loss.critic_network, shifted=True)
+    with pytest.raises(ValueError, match="shifted"):
+        FusedPPOUpdate(loss, shifted, optim)
+    with pytest.raises(ValueError, match="minibatch_size"):
+        FusedPPOUpdate(loss, gae, optim, minibatch_size=0)
