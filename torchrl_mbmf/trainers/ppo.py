@@ -155,7 +155,10 @@ class FusedPPOUpdate:
         epochs: int = 4,
         minibatch_size: int = 32,
         max_grad_norm: float | None = 0.5,
+        gradients: str = "manual",
     ) -> None:
+        if gradients not in ("manual", "autograd"):
+            raise ValueError(f"gradients must be 'manual' or 'autograd', got {gradients!r}")
         if not isinstance(loss, ClipPPOLoss):
             raise ValueError(f"FusedPPOUpdate expects a ClipPPOLoss, got {type(loss).__name__}")
         if not isinstance(gae, GAE):
@@ -174,6 +177,7 @@ class FusedPPOUpdate:
         self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
         self.params = list(loss.parameters())
         self._flat: _FlatAdam | None = None
+        self.gradients = gradients
         keys = loss.tensor_keys
         self.action_key = keys.action
         self.log_prob_key = keys.sample_log_prob
@@ -226,6 +230,22 @@ class FusedPPOUpdate:
                 "FusedPPOUpdate supports TanhNormal and IndependentNormal actors, got "
                 f"{dist_class.__name__}"
             )
+        self._loc_spec = _manual_spec(self._loc_layers)
+        self._value_spec = _manual_spec(self._value_layers)
+        covered = {
+            id(t)
+            for spec in (self._loc_spec, self._value_spec)
+            for layer in spec or ()
+            if isinstance(layer, tuple)
+            for t in layer[:2]
+        }
+        self.manual = (
+            gradients == "manual"
+            and self._loc_spec is not None
+            and self._value_spec is not None
+            and self._scale_module.scale_mapping == "exp"
+            and covered | {id(self._log_std)} == {id(p) for p in self.params}
+        )
 
     # ------------------------------------------------------------------ pieces
     @staticmethod
@@ -358,6 +378,92 @@ class FusedPPOUpdate:
         loss_critic = (loss.critic_coeff * loss_critic).mean()
         return loss_objective, loss_critic, loss_entropy, kl_approx
 
+    def _scalars(self) -> dict[str, float]:
+        loss = self.loss
+        eps = loss.clip_epsilon
+        return {
+            "low": float((-eps).log1p()),
+            "high": float(eps.log1p()),
+            "entropy_coeff": float(loss.entropy_coeff),
+            "critic_coeff": float(loss.critic_coeff),
+            "scale_lb": float(self._scale_module.scale_lb),
+        }
+
+    @torch.no_grad()
+    def _manual_grads(
+        self, mb: dict[str, Tensor], grads: dict[int, Tensor], c: dict[str, float]
+    ) -> Tensor:
+        """The minibatch losses with their gradients written by hand into ``grads``.
+
+        Same losses as :meth:`losses` (the analytic derivatives of each term, so equal to the
+        autograd gradients up to float rounding); ``mb["advantage"]`` is ``[N]`` and already
+        standardised (:func:`_standardize_minibatches`). Returns the stacked logged statistics.
+        """
+        loss = self.loss
+        obs = mb["obs"]
+        n = obs.shape[0]
+        advantage = mb["advantage"]  # already standardised per minibatch, [N]
+        # actor: loc network, scale = exp(log_std).clamp_min(lb)
+        loc, loc_acts = _spec_forward(self._loc_spec, obs)
+        raw = self._log_std.exp()
+        scale = raw.clamp_min(c["scale_lb"])
+        dscale = scale * (raw >= c["scale_lb"])  # d scale / d log_std
+        log_scale = scale.log()
+        inv_var = (scale * scale).reciprocal()
+        const = log_scale.sum() + loc.shape[-1] * _LOG_SQRT_2PI
+        z = mb["action"] - loc
+        zz = z * z * inv_var
+        log_prob = -0.5 * zz.sum(-1) - const
+        if self.tanh:
+            log_prob = log_prob - mb["log_det"]
+        prev = mb["log_prob"]
+        kl_approx = (prev - log_prob).mean()
+        log_weight = log_prob - prev
+        gain1 = log_weight.exp() * advantage
+        gain2 = log_weight.clamp(c["low"], c["high"]).exp() * advantage
+        take1 = gain1 <= gain2
+        loss_objective = -torch.where(take1, gain1, gain2).mean()
+        d_lp = (gain1 * take1) * (-1.0 / n)  # d loss_objective / d log_prob
+        d_loc = d_lp.unsqueeze(-1) * z * inv_var
+        d_scale = (d_lp.unsqueeze(-1) * (zz - 1.0)).sum(0) / scale
+        coeff = c["entropy_coeff"]
+        if self.tanh:
+            k = loss.samples_mc_entropy
+            noise = torch.empty((k, *loc.shape), dtype=loc.dtype, device=loc.device).normal_()
+            pre = loc + noise * scale
+            u = pre - loc
+            if self._tanh_only:
+                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
+            else:
+                log_det = self._transform.log_abs_det_jacobian(pre, self._transform(pre))
+            lp = -0.5 * (u * u * inv_var).sum(-1) - const - _sum_last(log_det, pre)
+            loss_entropy = coeff * lp.mean(0).mean()
+            # d lp / d pre = 2 tanh(pre) (the Gaussian term is the density of the noise)
+            th2 = 2.0 * pre.tanh()
+            w = coeff / (k * n)
+            d_loc = d_loc + w * th2.sum(0)
+            d_scale = d_scale + w * ((th2 * noise).sum((0, 1)) - (k * n) / scale)
+        else:
+            entropy = (0.5 + 0.5 * _LOG2PI + log_scale).sum(-1)
+            loss_entropy = (-coeff * entropy).mean()
+            d_scale = d_scale - coeff / scale
+        torch.mul(d_scale, dscale, out=grads[id(self._log_std)])
+        _spec_backward(self._loc_spec, loc_acts, d_loc, grads)
+        # critic
+        value, value_acts = _spec_forward(self._value_spec, obs)
+        target = mb["value_target"]
+        kind = loss.loss_critic_type
+        loss_critic = c["critic_coeff"] * _DISTANCES[kind](target, value, reduction="none").mean()
+        diff = target - value
+        if kind == "smooth_l1":  # beta = 1: the derivative is the clipped difference
+            d_value = diff.clamp(-1.0, 1.0)
+        elif kind == "l2":
+            d_value = 2.0 * diff
+        else:
+            d_value = diff.sign()
+        _spec_backward(self._value_spec, value_acts, d_value * (-c["critic_coeff"] / n), grads)
+        return torch.stack([loss_objective, loss_critic, loss_entropy, kl_approx])
+
     def __call__(self, batch: TensorDictBase) -> dict[str, float]:
         """One PPO iteration on a collected ``[*B, T]`` batch.
 
@@ -368,13 +474,29 @@ class FusedPPOUpdate:
         n = data["obs"].shape[0]
         mb_size = self.minibatch_size
         flat = self._flat_adam()
+        manual = self.manual and flat is not None
+        if manual:
+            index = {id(p): i for i, p in enumerate(self.params)}
+            grads = {pid: flat.views["grad"][i] for pid, i in index.items()}
+            scalars = self._scalars()
+            # transposed weight views, taken after the flat buffers own the parameters
+            self._loc_spec = _retranspose(self._loc_spec)
+            self._value_spec = _retranspose(self._value_spec)
         stats = []
         for _ in range(self.epochs):
             perm = torch.randperm(n)
             # One gather per epoch; the minibatches are then contiguous row slices of it.
             shuffled = {k: v[perm] for k, v in data.items()}
+            if manual:
+                shuffled["advantage"] = _standardize_minibatches(
+                    shuffled["advantage"].squeeze(-1), mb_size, self.loss.normalize_advantage
+                )
             for i in range(0, n, mb_size):
                 mb = {k: v[i : i + mb_size] for k, v in shuffled.items()}
+                if manual:
+                    stats.append(self._manual_grads(mb, grads, scalars))
+                    flat.step(self.max_grad_norm, per_tensor_norms=False)
+                    continue
                 objective, critic, entropy, kl = self.losses(mb)
                 total = objective + critic + entropy
                 if flat is None:
@@ -520,12 +642,19 @@ class _FlatAdam:
             t.fill_(self.step_count)
 
     @torch.no_grad()
-    def step(self, max_grad_norm: float | None) -> None:
-        """``clip_grad_norm_(params, max_grad_norm)`` then ``optimizer.step()``."""
+    def step(self, max_grad_norm: float | None, per_tensor_norms: bool = True) -> None:
+        """``clip_grad_norm_(params, max_grad_norm)`` then ``optimizer.step()``.
+
+        ``per_tensor_norms=False`` takes the norm of the flat gradient at once (the same
+        number up to float rounding) instead of the norm of the per-parameter norms.
+        """
         grad = self.grad
         if max_grad_norm is not None:
-            norms = torch._foreach_norm(self.views["grad"], 2.0)
-            total_norm = torch.linalg.vector_norm(torch.stack(norms), 2.0)
+            if per_tensor_norms:
+                norms = torch._foreach_norm(self.views["grad"], 2.0)
+                total_norm = torch.linalg.vector_norm(torch.stack(norms), 2.0)
+            else:
+                total_norm = torch.linalg.vector_norm(grad, 2.0)
             grad.mul_(torch.clamp(max_grad_norm / (total_norm + 1e-6), max=1.0))
         group = self.optimizer.param_groups[0]
         lr = group["lr"]
@@ -585,6 +714,78 @@ def _plain_layers(net: nn.Module, owned: dict[int, Tensor]) -> list[Any]:
     for module in net.children():
         layers += _plain_layers(module, owned)
     return layers
+
+
+def _manual_spec(layers: list[Any]) -> list[Any] | None:
+    """Layers as ``Tensor`` pairs ``(weight, bias)`` and ``"relu"``/``"tanh"``, else ``None``."""
+    spec: list[Any] = []
+    for layer in layers:
+        if isinstance(layer, tuple) and layer[2] is not None:
+            # (weight, bias, weight.t()): parameters change in place, so the view stays valid
+            spec.append((layer[1], layer[2], layer[1].t()))
+        elif isinstance(layer, nn.ReLU):
+            spec.append("relu")
+        elif isinstance(layer, nn.Tanh):
+            spec.append("tanh")
+        else:
+            return None
+    return spec
+
+
+def _retranspose(spec: list[Any]) -> list[Any]:
+    return [(lay[0], lay[1], lay[0].t()) if isinstance(lay, tuple) else lay for lay in spec]
+
+
+def _standardize_minibatches(advantage: Tensor, size: int, normalize: bool) -> Tensor:
+    """Each run of ``size`` entries standardised as ``ClipPPOLoss`` does per minibatch."""
+    if not normalize:
+        return advantage
+    n = advantage.shape[0]
+    full = n - n % size
+    parts = []
+    if full:
+        a = advantage[:full].view(-1, size)
+        if size > 1:
+            std = a.std(1, keepdim=True).clamp_min(_RESOLUTION)
+            a = (a - a.mean(1, keepdim=True)) / std
+        parts.append(a.reshape(-1))
+    if full < n:
+        rest = advantage[full:]
+        if rest.numel() > 1:
+            rest = (rest - rest.mean()) / rest.std().clamp_min(_RESOLUTION)
+        parts.append(rest)
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+
+def _spec_forward(spec: list[Any], x: Tensor) -> tuple[Tensor, list[Tensor]]:
+    acts = [x]
+    for layer in spec:
+        if layer == "relu":
+            x = torch.relu(x)
+        elif layer == "tanh":
+            x = torch.tanh(x)
+        else:
+            x = torch.addmm(layer[1], x, layer[2])
+        acts.append(x)
+    return x, acts
+
+
+def _spec_backward(
+    spec: list[Any], acts: list[Tensor], grad: Tensor, grads: dict[int, Tensor]
+) -> None:
+    for k in range(len(spec) - 1, -1, -1):
+        layer = spec[k]
+        if layer == "relu":
+            grad = torch.ops.aten.threshold_backward(grad, acts[k + 1], 0)
+        elif layer == "tanh":
+            y = acts[k + 1]
+            grad = grad * (1.0 - y * y)
+        else:
+            weight, bias = layer[0], layer[1]
+            torch.mm(grad.t(), acts[k], out=grads[id(weight)])
+            torch.sum(grad, 0, out=grads[id(bias)])
+            if k > 0:
+                grad = grad.mm(weight)
 
 
 def _owned_params(module: nn.Module, params: Any) -> dict[int, Tensor]:
