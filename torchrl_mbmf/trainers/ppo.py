@@ -301,7 +301,7 @@ class FusedPPOUpdate:
                 time_dim=batch.ndim - 1,
             )
 
-    def _prepare(self, batch: TensorDictBase) -> dict[str, Tensor]:
+    def _prepare(self, batch: TensorDictBase, manual: bool) -> dict[str, Tensor]:
         if batch.ndim < 1:
             raise ValueError(f"expected a batch with a time dimension, got {batch.batch_size}")
         for key in AUTO_LOSS_MASK_KEYS:
@@ -318,25 +318,30 @@ class FusedPPOUpdate:
         }
         action = batch.get(self.action_key)
         action = action.reshape(-1, action.shape[-1])
-        if self.tanh:
+        data["action"] = action
+        if self.tanh and manual:
             # The stored action is fixed: its pre-tanh value and log-det-Jacobian are
             # constants of the iteration (computed as TanhNormal.log_prob computes them).
+            # The exact path computes them per minibatch as the stock loss does: elementwise
+            # kernels round the tail of a tensor differently, so the batch shape matters.
             with torch.no_grad():
                 t = self._transform
                 pre = t.inv(action)
                 data["action"] = pre
                 data["log_det"] = _sum_last(t.log_abs_det_jacobian(pre, action), pre)
-        else:
-            data["action"] = action
         return data
+
+    def _pre_tanh(self, action: Tensor) -> tuple[Tensor, Tensor]:
+        with torch.no_grad():
+            pre = self._transform.inv(action)
+            return pre, _sum_last(self._transform.log_abs_det_jacobian(pre, action), pre)
 
     def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The ``ClipPPOLoss`` terms of one minibatch of tensors.
 
         Args:
-            mb: ``obs [N, obs_dim]``, ``action [N, A]`` (for a ``TanhNormal`` its pre-tanh
-                value, with ``log_det [N]``), ``log_prob [N]``, ``advantage [N, 1]`` and
-                ``value_target [N, 1]``.
+            mb: ``obs [N, obs_dim]``, ``action [N, A]``, ``log_prob [N]``,
+                ``advantage [N, 1]`` and ``value_target [N, 1]``.
 
         Returns:
             ``(loss_objective, loss_critic, loss_entropy, kl_approx)`` (``kl_approx`` detached).
@@ -346,9 +351,11 @@ class FusedPPOUpdate:
         if loss.normalize_advantage and advantage.numel() > 1:
             advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
         loc, scale = self._dist_params(mb["obs"])
-        log_prob = _normal_log_prob(mb["action"], loc, scale).sum(-1)
         if self.tanh:
-            log_prob = log_prob - mb["log_det"]
+            pre_action, log_det = self._pre_tanh(mb["action"])
+            log_prob = _normal_log_prob(pre_action, loc, scale).sum(-1) - log_det
+        else:
+            log_prob = _normal_log_prob(mb["action"], loc, scale).sum(-1)
         prev = mb["log_prob"]
         log_weight = (log_prob - prev).unsqueeze(-1)
         kl_approx = (prev - log_prob).unsqueeze(-1).detach().mean()
@@ -470,11 +477,11 @@ class FusedPPOUpdate:
         Returns:
             The mean of each of :data:`PPO_STATS` over the iteration (one host sync).
         """
-        data = self._prepare(batch)
-        n = data["obs"].shape[0]
-        mb_size = self.minibatch_size
         flat = self._flat_adam()
         manual = self.manual and flat is not None
+        data = self._prepare(batch, manual)
+        n = data["obs"].shape[0]
+        mb_size = self.minibatch_size
         if manual:
             index = {id(p): i for i, p in enumerate(self.params)}
             grads = {pid: flat.views["grad"][i] for pid, i in index.items()}
