@@ -169,6 +169,7 @@ def test_minibatch_remainder_and_non_adam_optimiser():
         fused = FusedPPOUpdate(
             loss_b, gae_b, optim_b, epochs=2, minibatch_size=16, gradients=gradients
         )
+        assert not fused.manual
         torch.manual_seed(1)
         stock = ppo_update(loss_a, gae_a, optim_a, batch.clone(), epochs=2, minibatch_size=16)
         torch.manual_seed(1)

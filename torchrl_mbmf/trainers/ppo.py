@@ -101,7 +101,7 @@ def ppo_update(
 class FusedPPOUpdate:
     """The :func:`ppo_update` iteration in plain tensor operations.
 
-    Computes exactly what :func:`ppo_update` computes with the stock
+    Computes what :func:`ppo_update` computes with the stock
     :class:`~torchrl.objectives.ClipPPOLoss` and :class:`~torchrl.objectives.value.GAE`, on the
     very parameters those modules hold (so the optimiser, checkpoints and the collector's policy
     are shared with the stock path): GAE once on the ``[*B, T]`` batch (the stock recursion of
@@ -112,29 +112,47 @@ class FusedPPOUpdate:
     (unbiased std, clamped at the float32 resolution); the ``TanhNormal`` entropy is the stock
     one-sample reparameterised Monte-Carlo estimate (one ``normal_`` draw per minibatch, in the
     stock order), the ``IndependentNormal`` entropy is analytic. Random draws (the permutations
-    and the entropy samples) follow the stock order, so with one seed both paths take the same
-    steps (tested against :func:`ppo_update`); the stock path stays the reference.
+    and the entropy samples) follow the stock order; the stock path stays the reference.
 
-    What it skips: the tensordict indexing and cloning per minibatch, the distribution objects,
-    the per-minibatch host syncs of the logged statistics (they are gathered on device and
-    read once per iteration).
+    Two ways to get the gradients, same algorithm:
+
+    - ``gradients="manual"`` (default): the analytic derivatives of each loss term written by
+      hand (no autograd graph), backpropagated through the MLPs with plain matmuls, then the
+      gradient clip and Adam on one flat buffer of all parameters (``optimizer`` must be a
+      plain ``torch.optim.Adam``; its state stays its own). Equal to autograd up to float
+      rounding: agrees with the autograd path to 1e-12 in float64; in float32 the rounding
+      differs, so runs drift apart at rounding level (about 1e-6 on the parameters after one
+      2048-frame iteration, growing with later iterations as PPO's clip decisions flip).
+      Falls back to ``"autograd"`` for networks it cannot differentiate by hand (layers other
+      than ``Linear``/``ReLU``/``Tanh``, e.g. the ``normal`` actor's squashed-mean wrapper) or
+      another optimiser; the attribute ``manual`` says which path runs.
+    - ``gradients="autograd"``: the same loss terms, op for op as the stock loss, through
+      autograd: bit-identical to :func:`ppo_update` (parameters, optimiser state, statistics).
+
+    Both skip the tensordict indexing and cloning per minibatch, the distribution objects and
+    the per-minibatch host syncs of the logged statistics (gathered on device, read once).
 
     Supports the networks of :func:`~torchrl_mbmf.modules.make_ppo_actor_critic`: an actor
     whose ``TensorDictModule`` writes ``["loc", "scale"]`` (a loc network followed by
     :class:`~tensordict.nn.AddStateIndependentNormalScale`) with a ``TanhNormal`` or
     ``IndependentNormal`` distribution, and a critic ``ValueOperator`` on one observation key.
-    Unsupported loss settings (value clipping, a delayed actor, masks, composite actions, ...)
-    raise ``ValueError``.
+    Unsupported loss or GAE settings (value clipping, a delayed actor, masks, shifted GAE,
+    ...) raise ``ValueError``.
+
+    .. note:: With a plain Adam the parameters, their ``.grad`` and the optimiser's moment
+       estimates become views of flat buffers (same values, same objects); a reloaded
+       ``state_dict`` or ``zero_grad(set_to_none=True)`` is picked up again on the next call.
 
     Args:
         loss: the stock ``ClipPPOLoss`` (``normalize_advantage`` either way).
         gae: the ``GAE`` advantage module over ``loss``'s critic.
-        optimizer: the optimiser over ``loss.parameters()``.
+        optimizer: the optimiser over ``loss.parameters()`` (in that order).
 
     Keyword Args:
         epochs: passes over the batch. Defaults to 4.
         minibatch_size: transitions per gradient step. Defaults to 32.
         max_grad_norm: gradient-norm clip, ``None`` for none. Defaults to 0.5.
+        gradients: ``"manual"`` or ``"autograd"`` (see above). Defaults to ``"manual"``.
 
     Examples:
         >>> import torch
@@ -142,6 +160,8 @@ class FusedPPOUpdate:
         >>> loss, gae, batch = make_test_ppo(frames=64)
         >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
         >>> update = FusedPPOUpdate(loss, gae, optim, epochs=1, minibatch_size=32)
+        >>> update.manual
+        True
         >>> sorted(update(batch))
         ['kl_approx', 'loss_critic', 'loss_entropy', 'loss_objective']
     """
@@ -245,6 +265,7 @@ class FusedPPOUpdate:
             and self._value_spec is not None
             and self._scale_module.scale_mapping == "exp"
             and covered | {id(self._log_std)} == {id(p) for p in self.params}
+            and _FlatAdam.supports(optimizer, self.params)
         )
 
     # ------------------------------------------------------------------ pieces
@@ -591,8 +612,13 @@ class _FlatAdam:
     @classmethod
     def build(cls, optimizer: torch.optim.Optimizer, params: list[Tensor]) -> _FlatAdam | None:
         """A flat Adam over ``params`` if ``optimizer`` is a plain Adam over exactly them."""
+        return cls(optimizer, params) if cls.supports(optimizer, params) else None
+
+    @staticmethod
+    def supports(optimizer: torch.optim.Optimizer, params: list[Tensor]) -> bool:
+        """Whether ``optimizer`` is a plain Adam over exactly ``params``, with one step count."""
         if type(optimizer) is not torch.optim.Adam or len(optimizer.param_groups) != 1:
-            return None
+            return False
         group = optimizer.param_groups[0]
         plain = (
             group["weight_decay"] == 0
@@ -606,18 +632,16 @@ class _FlatAdam:
             and all(isinstance(b, float) for b in group["betas"])
         )
         if not plain or [id(p) for p in group["params"]] != [id(p) for p in params]:
-            return None
+            return False
         if len({(p.dtype, p.device) for p in params}) != 1 or any(p.is_complex() for p in params):
-            return None
+            return False
         state = optimizer.state
         if any(len(state[p]) not in (0, 3) for p in params) or any(
             not (p.is_contiguous() and p.requires_grad) for p in params
         ):
-            return None
+            return False
         counts = {float(state[p]["step"]) for p in params if len(state[p])}
-        if len(counts) > 1 or (counts and any(len(state[p]) == 0 for p in params)):
-            return None
-        return cls(optimizer, params)
+        return not (len(counts) > 1 or (counts and any(len(state[p]) == 0 for p in params)))
 
     def bound(self) -> bool:
         """Whether the parameters, gradients and optimiser state are still the flat views."""
