@@ -176,3 +176,34 @@ def test_minibatch_remainder_and_non_adam_optimiser():
         assert fused(batch.clone()) == stock
         for a, b in zip(loss_a.parameters(), loss_b.parameters(), strict=True):
             assert torch.equal(a, b)
+
+
+def test_env_rollout_with_truncation_matches_stock():
+    """A real rollout (Pendulum truncates at 200 steps) through the real actor builders."""
+    from torchrl.objectives import ClipPPOLoss
+
+    from torchrl_mbmf.envs import make_gym_state_env
+    from torchrl_mbmf.modules import make_ppo_actor_critic
+
+    def build():
+        torch.manual_seed(0)
+        env = make_gym_state_env("Pendulum-v1")
+        env.set_seed(0)
+        actor, critic = make_ppo_actor_critic(env, hidden_sizes=(16, 16))
+        loss = ClipPPOLoss(
+            actor, critic, entropy_coeff=1e-4, critic_coeff=0.5, normalize_advantage=True
+        )
+        gae = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False)
+        with torch.no_grad():
+            batch = env.rollout(256, actor, break_when_any_done=False)
+        return loss, gae, torch.optim.Adam(loss.parameters(), lr=3e-4), batch
+
+    (loss_a, gae_a, optim_a, batch), (loss_b, gae_b, optim_b, _) = build(), build()
+    assert batch["next", "truncated"].any()
+    fused = FusedPPOUpdate(loss_b, gae_b, optim_b, epochs=1, gradients="autograd")
+    torch.manual_seed(1)
+    stock = ppo_update(loss_a, gae_a, optim_a, batch.clone(), epochs=1)
+    torch.manual_seed(1)
+    assert fused(batch.clone()) == stock
+    for a, b in zip(loss_a.parameters(), loss_b.parameters(), strict=True):
+        assert torch.equal(a, b)
