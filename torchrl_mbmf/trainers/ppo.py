@@ -2,10 +2,23 @@
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDictBase
-from torchrl.objectives import ClipPPOLoss
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from tensordict.nn.utils import mappings
+from torch import Tensor, nn
+from torch import distributions as D
+from torchrl.modules import IndependentNormal, TanhNormal
+from torchrl.objectives import AUTO_LOSS_MASK_KEYS, ClipPPOLoss
 from torchrl.objectives.value import GAE
+from torchrl.objectives.value.functional import (
+    generalized_advantage_estimate,
+    vec_generalized_advantage_estimate,
+)
 
 #: Loss entries averaged into the logged statistics.
 PPO_STATS: tuple[str, ...] = ("loss_objective", "loss_critic", "loss_entropy", "kl_approx")
@@ -83,3 +96,876 @@ def ppo_update(
                 if value is not None:
                     sums[key] = sums.get(key, 0.0) + float(value.detach())
     return {key: value / steps for key, value in sums.items()}
+
+
+class FusedPPOUpdate:
+    """The :func:`ppo_update` iteration in plain tensor operations.
+
+    Computes what :func:`ppo_update` computes with the stock
+    :class:`~torchrl.objectives.ClipPPOLoss` and :class:`~torchrl.objectives.value.GAE`, on the
+    very parameters those modules hold (so the optimiser, checkpoints and the collector's policy
+    are shared with the stock path): GAE once on the ``[*B, T]`` batch (the stock recursion of
+    :mod:`torchrl.objectives.value.functional`, with ``done``/``terminated`` handled as GAE does),
+    then ``epochs`` passes over a fresh ``torch.randperm`` of the flattened batch, each minibatch
+    taking one clipped-surrogate + entropy + critic step with gradient-norm clipping. The
+    advantage is standardised per minibatch as ``ClipPPOLoss(normalize_advantage=True)`` does
+    (unbiased std, clamped at the float32 resolution); the ``TanhNormal`` entropy is the stock
+    one-sample reparameterised Monte-Carlo estimate (one ``normal_`` draw per minibatch, in the
+    stock order), the ``IndependentNormal`` entropy is analytic. Random draws (the permutations
+    and the entropy samples) follow the stock order; the stock path stays the reference.
+
+    Two ways to get the gradients, same algorithm:
+
+    - ``gradients="manual"`` (default): the analytic derivatives of each loss term written by
+      hand (no autograd graph), backpropagated through the MLPs with plain matmuls, then the
+      gradient clip and Adam on one flat buffer of all parameters (``optimizer`` must be a
+      plain ``torch.optim.Adam``; its state stays its own). Equal to autograd up to float
+      rounding: agrees with the autograd path to 1e-12 in float64; in float32 the rounding
+      differs, so runs drift apart at rounding level (about 1e-6 on the parameters after one
+      2048-frame iteration, growing with later iterations as PPO's clip decisions flip).
+      Falls back to ``"autograd"`` for networks it cannot differentiate by hand (layers other
+      than ``Linear``/``ReLU``/``Tanh``, e.g. the ``normal`` actor's squashed-mean wrapper) or
+      another optimiser; the attribute ``manual`` says which path runs.
+    - ``gradients="autograd"``: the same loss terms, op for op as the stock loss, through
+      autograd: bit-identical to :func:`ppo_update` (parameters, optimiser state, statistics).
+
+    Both skip the tensordict indexing and cloning per minibatch, the distribution objects and
+    the per-minibatch host syncs of the logged statistics (gathered on device, read once).
+
+    Supports the networks of :func:`~torchrl_mbmf.modules.make_ppo_actor_critic`: an actor
+    whose ``TensorDictModule`` writes ``["loc", "scale"]`` (a loc network followed by
+    :class:`~tensordict.nn.AddStateIndependentNormalScale`) with a ``TanhNormal`` or
+    ``IndependentNormal`` distribution, and a critic ``ValueOperator`` on one observation key.
+    Unsupported loss or GAE settings (value clipping, a delayed actor, masks, shifted GAE,
+    ...) raise ``ValueError``.
+
+    .. note:: With a plain Adam the parameters, their ``.grad`` and the optimiser's moment
+       estimates become views of flat buffers (same values, same objects); a reloaded
+       ``state_dict`` or ``zero_grad(set_to_none=True)`` is picked up again on the next call.
+
+    Args:
+        loss: the stock ``ClipPPOLoss`` (``normalize_advantage`` either way).
+        gae: the ``GAE`` advantage module over ``loss``'s critic.
+        optimizer: the optimiser over ``loss.parameters()`` (in that order).
+
+    Keyword Args:
+        epochs: passes over the batch. Defaults to 4.
+        minibatch_size: transitions per gradient step. Defaults to 32.
+        max_grad_norm: gradient-norm clip, ``None`` for none. Defaults to 0.5.
+        gradients: ``"manual"`` or ``"autograd"`` (see above). Defaults to ``"manual"``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, make_test_ppo
+        >>> loss, gae, batch = make_test_ppo(frames=64)
+        >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
+        >>> update = FusedPPOUpdate(loss, gae, optim, epochs=1, minibatch_size=32)
+        >>> update.manual
+        True
+        >>> sorted(update(batch))
+        ['kl_approx', 'loss_critic', 'loss_entropy', 'loss_objective']
+    """
+
+    def __init__(
+        self,
+        loss: ClipPPOLoss,
+        gae: GAE,
+        optimizer: torch.optim.Optimizer,
+        *,
+        epochs: int = 4,
+        minibatch_size: int = 32,
+        max_grad_norm: float | None = 0.5,
+        gradients: str = "manual",
+    ) -> None:
+        if gradients not in ("manual", "autograd"):
+            raise ValueError(f"gradients must be 'manual' or 'autograd', got {gradients!r}")
+        if not isinstance(loss, ClipPPOLoss):
+            raise ValueError(f"FusedPPOUpdate expects a ClipPPOLoss, got {type(loss).__name__}")
+        if not isinstance(gae, GAE):
+            raise ValueError(f"FusedPPOUpdate expects a GAE module, got {type(gae).__name__}")
+        if epochs < 1 or minibatch_size < 1:
+            raise ValueError(
+                f"epochs and minibatch_size must be >= 1, got {epochs} and {minibatch_size}"
+            )
+        _check_loss(loss)
+        _check_gae(gae, loss)
+        self.loss = loss
+        self.gae = gae
+        self.optimizer = optimizer
+        self.epochs = int(epochs)
+        self.minibatch_size = int(minibatch_size)
+        self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
+        self.params = list(loss.parameters())
+        self._flat: _FlatAdam | None = None
+        self.gradients = gradients
+        keys = loss.tensor_keys
+        self.action_key = keys.action
+        self.log_prob_key = keys.sample_log_prob
+        self.value_key = keys.value
+        self.reward_key = gae.tensor_keys.reward
+        self.done_key = gae.tensor_keys.done
+        self.terminated_key = gae.tensor_keys.terminated
+        policy, dist_module = _policy_parts(loss.actor_network)
+        self.observation_key = policy.in_keys[0]
+        net = policy.module
+        if not (
+            isinstance(net, nn.Sequential) and isinstance(net[-1], AddStateIndependentNormalScale)
+        ):
+            raise ValueError(
+                "FusedPPOUpdate expects the actor's loc/scale module to be "
+                "Sequential(loc_net, AddStateIndependentNormalScale) (see make_ppo_actor_critic)"
+            )
+        actor_owned = _owned_params(loss.actor_network, loss.actor_network_params)
+        self._loc_layers = _plain_layers(net[0] if len(net) == 2 else net[:-1], actor_owned)
+        self._scale_module = net[-1]
+        self._log_std = actor_owned[id(net[-1].state_independent_scale)]
+        self._scale_map = mappings(self._scale_module.scale_mapping)
+        critic = loss.critic_network
+        if list(critic.in_keys) != [self.observation_key] or list(critic.out_keys) != [
+            self.value_key
+        ]:
+            raise ValueError(
+                f"FusedPPOUpdate expects a critic reading {[self.observation_key]} and writing "
+                f"{[self.value_key]}, got in_keys={critic.in_keys} out_keys={critic.out_keys}"
+            )
+        critic_owned = _owned_params(critic, loss.critic_network_params)
+        self._value_layers = _plain_layers(critic.module, critic_owned)
+        dist_class = dist_module.distribution_class
+        kwargs = dict(dist_module.distribution_kwargs or {})
+        if issubclass(dist_class, TanhNormal):
+            if kwargs.get("tanh_loc", False) or kwargs.get("event_dims", 1) != 1:
+                raise ValueError("FusedPPOUpdate expects TanhNormal(tanh_loc=False, event_dims=1)")
+            probe = dist_class(torch.zeros(1), torch.ones(1), **kwargs)
+            self._transform = probe.transforms[0]
+            self._tanh_only = isinstance(self._transform, D.TanhTransform)
+            self.tanh = True
+        elif issubclass(dist_class, IndependentNormal):
+            if kwargs.get("tanh_loc", False) or kwargs.get("event_dim", 1) != 1:
+                raise ValueError(
+                    "FusedPPOUpdate expects IndependentNormal(tanh_loc=False, event_dim=1)"
+                )
+            self.tanh = False
+        else:
+            raise ValueError(
+                "FusedPPOUpdate supports TanhNormal and IndependentNormal actors, got "
+                f"{dist_class.__name__}"
+            )
+        self._loc_spec = _manual_spec(self._loc_layers)
+        self._value_spec = _manual_spec(self._value_layers)
+        covered = {
+            id(t)
+            for spec in (self._loc_spec, self._value_spec)
+            for layer in spec or ()
+            if isinstance(layer, tuple)
+            for t in layer[:2]
+        }
+        self.manual = (
+            gradients == "manual"
+            and self._loc_spec is not None
+            and self._value_spec is not None
+            and self._scale_module.scale_mapping == "exp"
+            and covered | {id(self._log_std)} == {id(p) for p in self.params}
+            and _FlatAdam.supports(optimizer, self.params)
+        )
+
+    # ------------------------------------------------------------------ pieces
+    @staticmethod
+    def _mlp(layers: list[Any], x: Tensor) -> Tensor:
+        for layer in layers:
+            x = layer[0](x, layer[1], layer[2]) if isinstance(layer, tuple) else layer(x)
+        return x
+
+    def _dist_params(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        loc = self._mlp(self._loc_layers, obs)
+        scale = self._log_std.expand_as(loc)
+        scale = self._scale_map(scale).clamp_min(self._scale_module.scale_lb)
+        return loc, scale
+
+    def value(self, obs: Tensor) -> Tensor:
+        """The critic's ``state_value`` of observations ``[..., obs_dim]`` (``[..., 1]``)."""
+        return self._mlp(self._value_layers, obs)
+
+    def advantage(self, batch: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """GAE of a ``[*B, T]`` batch, as the stock module computes it (no gradient).
+
+        Args:
+            batch: a collector batch (observation, ``next`` observation, reward, done,
+                terminated).
+
+        Returns:
+            ``(advantage, value_target)``, each ``[*B, T, 1]``.
+        """
+        gae = self.gae
+        obs = batch.get(self.observation_key)
+        nxt = batch.get("next")
+        with torch.no_grad():
+            values = self.value(torch.stack([obs, nxt.get(self.observation_key)], 0))
+            value, next_value = values[0], values[1]
+            reward = nxt.get(self.reward_key)
+            done = nxt.get(self.done_key)
+            terminated = nxt.get(self.terminated_key, default=done)
+            gamma = gae.gamma.to(reward.device)
+            lmbda = gae.lmbda.to(reward.device)
+            fn = (
+                vec_generalized_advantage_estimate
+                if gae.vectorized
+                else generalized_advantage_estimate
+            )
+            return fn(
+                gamma,
+                lmbda,
+                value,
+                next_value,
+                reward,
+                done=done,
+                terminated=terminated,
+                time_dim=batch.ndim - 1,
+            )
+
+    def _prepare(self, batch: TensorDictBase, manual: bool) -> dict[str, Tensor]:
+        if batch.ndim < 1:
+            raise ValueError(f"expected a batch with a time dimension, got {batch.batch_size}")
+        for key in AUTO_LOSS_MASK_KEYS:
+            if batch.get(key, None) is not None:
+                raise ValueError(f"FusedPPOUpdate does not support masked batches (found {key!r})")
+        advantage, value_target = self.advantage(batch)
+        data = {
+            "obs": batch.get(self.observation_key).reshape(
+                -1, batch.get(self.observation_key).shape[-1]
+            ),
+            "advantage": advantage.reshape(-1, 1),
+            "value_target": value_target.reshape(-1, 1),
+            "log_prob": batch.get(self.log_prob_key).reshape(-1),
+        }
+        action = batch.get(self.action_key)
+        action = action.reshape(-1, action.shape[-1])
+        data["action"] = action
+        if self.tanh and manual:
+            # The stored action is fixed: its pre-tanh value and log-det-Jacobian are
+            # constants of the iteration (computed as TanhNormal.log_prob computes them).
+            # The exact path computes them per minibatch as the stock loss does: elementwise
+            # kernels round the tail of a tensor differently, so the batch shape matters.
+            with torch.no_grad():
+                t = self._transform
+                pre = t.inv(action)
+                data["action"] = pre
+                data["log_det"] = _sum_last(t.log_abs_det_jacobian(pre, action), pre)
+        return data
+
+    def _pre_tanh(self, action: Tensor) -> tuple[Tensor, Tensor]:
+        with torch.no_grad():
+            pre = self._transform.inv(action)
+            return pre, _sum_last(self._transform.log_abs_det_jacobian(pre, action), pre)
+
+    def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The ``ClipPPOLoss`` terms of one minibatch of tensors.
+
+        Args:
+            mb: ``obs [N, obs_dim]``, ``action [N, A]``, ``log_prob [N]``,
+                ``advantage [N, 1]`` and ``value_target [N, 1]``.
+
+        Returns:
+            ``(loss_objective, loss_critic, loss_entropy, kl_approx)`` (``kl_approx`` detached).
+        """
+        loss = self.loss
+        advantage = mb["advantage"]
+        if loss.normalize_advantage and advantage.numel() > 1:
+            advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
+        loc, scale = self._dist_params(mb["obs"])
+        if self.tanh:
+            pre_action, log_det = self._pre_tanh(mb["action"])
+            log_prob = _normal_log_prob(pre_action, loc, scale).sum(-1) - log_det
+        else:
+            log_prob = _normal_log_prob(mb["action"], loc, scale).sum(-1)
+        prev = mb["log_prob"]
+        log_weight = (log_prob - prev).unsqueeze(-1)
+        kl_approx = (prev - log_prob).unsqueeze(-1).detach().mean()
+        gain1 = log_weight.exp() * advantage
+        eps = loss.clip_epsilon
+        log_weight_clip = log_weight.clamp((-eps).log1p(), eps.log1p())
+        gain2 = log_weight_clip.exp() * advantage
+        gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
+        loss_objective = (-gain).mean()
+        if self.tanh:
+            noise = torch.empty(
+                (loss.samples_mc_entropy, *loc.shape), dtype=loc.dtype, device=loc.device
+            ).normal_()
+            pre = loc + noise * scale
+            lp = _normal_log_prob(pre, loc, scale).sum(-1)
+            if self._tanh_only:
+                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
+            else:
+                log_det = self._transform.log_abs_det_jacobian(pre, self._transform(pre))
+            lp = lp - _sum_last(log_det, pre)
+            entropy = -lp.mean(0)
+        else:
+            entropy = (0.5 + 0.5 * _LOG2PI + scale.log()).sum(-1)
+        loss_entropy = (-loss.entropy_coeff * entropy.unsqueeze(-1)).mean()
+        value = self.value(mb["obs"])
+        loss_critic = _DISTANCES[loss.loss_critic_type](mb["value_target"], value, reduction="none")
+        loss_critic = (loss.critic_coeff * loss_critic).mean()
+        return loss_objective, loss_critic, loss_entropy, kl_approx
+
+    def _scalars(self) -> dict[str, float]:
+        loss = self.loss
+        eps = loss.clip_epsilon
+        return {
+            "low": float((-eps).log1p()),
+            "high": float(eps.log1p()),
+            "entropy_coeff": float(loss.entropy_coeff),
+            "critic_coeff": float(loss.critic_coeff),
+            "scale_lb": float(self._scale_module.scale_lb),
+        }
+
+    @torch.no_grad()
+    def _manual_grads(
+        self, mb: dict[str, Tensor], grads: dict[int, Tensor], c: dict[str, float]
+    ) -> Tensor:
+        """The minibatch losses with their gradients written by hand into ``grads``.
+
+        Same losses as :meth:`losses` (the analytic derivatives of each term, so equal to the
+        autograd gradients up to float rounding); ``mb["advantage"]`` is ``[N]`` and already
+        standardised (:func:`_standardize_minibatches`). Returns the stacked logged statistics.
+        """
+        loss = self.loss
+        obs = mb["obs"]
+        n = obs.shape[0]
+        advantage = mb["advantage"]  # already standardised per minibatch, [N]
+        # actor: loc network, scale = exp(log_std).clamp_min(lb)
+        loc, loc_acts = _spec_forward(self._loc_spec, obs)
+        raw = self._log_std.exp()
+        scale = raw.clamp_min(c["scale_lb"])
+        dscale = scale * (raw >= c["scale_lb"])  # d scale / d log_std
+        log_scale = scale.log()
+        inv_var = (scale * scale).reciprocal()
+        const = log_scale.sum() + loc.shape[-1] * _LOG_SQRT_2PI
+        z = mb["action"] - loc
+        zz = z * z * inv_var
+        log_prob = -0.5 * zz.sum(-1) - const
+        if self.tanh:
+            log_prob = log_prob - mb["log_det"]
+        prev = mb["log_prob"]
+        kl_approx = (prev - log_prob).mean()
+        log_weight = log_prob - prev
+        gain1 = log_weight.exp() * advantage
+        gain2 = log_weight.clamp(c["low"], c["high"]).exp() * advantage
+        take1 = gain1 <= gain2
+        loss_objective = -torch.where(take1, gain1, gain2).mean()
+        d_lp = (gain1 * take1) * (-1.0 / n)  # d loss_objective / d log_prob
+        d_loc = d_lp.unsqueeze(-1) * z * inv_var
+        d_scale = (d_lp.unsqueeze(-1) * (zz - 1.0)).sum(0) / scale
+        coeff = c["entropy_coeff"]
+        if self.tanh:
+            k = loss.samples_mc_entropy
+            noise = torch.empty((k, *loc.shape), dtype=loc.dtype, device=loc.device).normal_()
+            pre = loc + noise * scale
+            u = pre - loc
+            if self._tanh_only:
+                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
+            else:
+                log_det = self._transform.log_abs_det_jacobian(pre, self._transform(pre))
+            lp = -0.5 * (u * u * inv_var).sum(-1) - const - _sum_last(log_det, pre)
+            loss_entropy = coeff * lp.mean(0).mean()
+            # d lp / d pre = 2 tanh(pre) (the Gaussian term is the density of the noise)
+            th2 = 2.0 * pre.tanh()
+            w = coeff / (k * n)
+            d_loc = d_loc + w * th2.sum(0)
+            d_scale = d_scale + w * ((th2 * noise).sum((0, 1)) - (k * n) / scale)
+        else:
+            entropy = (0.5 + 0.5 * _LOG2PI + log_scale).sum(-1)
+            loss_entropy = (-coeff * entropy).mean()
+            d_scale = d_scale - coeff / scale
+        torch.mul(d_scale, dscale, out=grads[id(self._log_std)])
+        _spec_backward(self._loc_spec, loc_acts, d_loc, grads)
+        # critic
+        value, value_acts = _spec_forward(self._value_spec, obs)
+        target = mb["value_target"]
+        kind = loss.loss_critic_type
+        loss_critic = c["critic_coeff"] * _DISTANCES[kind](target, value, reduction="none").mean()
+        diff = target - value
+        if kind == "smooth_l1":  # beta = 1: the derivative is the clipped difference
+            d_value = diff.clamp(-1.0, 1.0)
+        elif kind == "l2":
+            d_value = 2.0 * diff
+        else:
+            d_value = diff.sign()
+        _spec_backward(self._value_spec, value_acts, d_value * (-c["critic_coeff"] / n), grads)
+        return torch.stack([loss_objective, loss_critic, loss_entropy, kl_approx])
+
+    def __call__(self, batch: TensorDictBase) -> dict[str, float]:
+        """One PPO iteration on a collected ``[*B, T]`` batch.
+
+        Returns:
+            The mean of each of :data:`PPO_STATS` over the iteration (one host sync).
+        """
+        flat = self._flat_adam()
+        manual = self.manual and flat is not None
+        data = self._prepare(batch, manual)
+        n = data["obs"].shape[0]
+        mb_size = self.minibatch_size
+        if manual:
+            index = {id(p): i for i, p in enumerate(self.params)}
+            grads = {pid: flat.views["grad"][i] for pid, i in index.items()}
+            scalars = self._scalars()
+            # transposed weight views, taken after the flat buffers own the parameters
+            self._loc_spec = _retranspose(self._loc_spec)
+            self._value_spec = _retranspose(self._value_spec)
+        stats = []
+        for _ in range(self.epochs):
+            perm = torch.randperm(n)
+            # One gather per epoch; the minibatches are then contiguous row slices of it.
+            shuffled = {k: v[perm] for k, v in data.items()}
+            if manual:
+                shuffled["advantage"] = _standardize_minibatches(
+                    shuffled["advantage"].squeeze(-1), mb_size, self.loss.normalize_advantage
+                )
+            for i in range(0, n, mb_size):
+                mb = {k: v[i : i + mb_size] for k, v in shuffled.items()}
+                if manual:
+                    stats.append(self._manual_grads(mb, grads, scalars))
+                    flat.step(self.max_grad_norm, per_tensor_norms=False)
+                    continue
+                objective, critic, entropy, kl = self.losses(mb)
+                total = objective + critic + entropy
+                if flat is None:
+                    self.optimizer.zero_grad(set_to_none=True)
+                    total.backward()
+                    if self.max_grad_norm is not None:
+                        torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
+                    self.optimizer.step()
+                else:
+                    flat.grad.zero_()
+                    total.backward()
+                    flat.step(self.max_grad_norm)
+                stats.append(
+                    torch.stack([objective.detach(), critic.detach(), entropy.detach(), kl])
+                )
+        if flat is not None:
+            flat.write_steps()
+        rows = torch.stack(stats).tolist()
+        sums = [0.0] * len(PPO_STATS)
+        for row in rows:
+            for j, value in enumerate(row):
+                sums[j] += value
+        return {key: s / len(rows) for key, s in zip(PPO_STATS, sums, strict=True)}
+
+    def _flat_adam(self) -> _FlatAdam | None:
+        """The one-buffer Adam over the loss parameters, or ``None`` for ``optimizer.step()``."""
+        flat = self._flat
+        if flat is not None and flat.bound():
+            flat.read_steps()
+            return flat
+        self._flat = _FlatAdam.build(self.optimizer, self.params)
+        return self._flat
+
+
+class _FlatAdam:
+    """``torch.optim.Adam`` (single-tensor path) on one flat buffer of all parameters.
+
+    The parameters, their gradients and the optimiser's ``exp_avg``/``exp_avg_sq`` become views
+    of four flat buffers, so one Adam step or one gradient-norm clip is a handful of operations
+    instead of a handful per parameter. Every operation is elementwise with the scalars the
+    stock step computes (and the clip uses the per-parameter norms ``clip_grad_norm_`` uses), so
+    the results are bit-identical to ``clip_grad_norm_`` + ``Adam.step()``; the optimiser's
+    state stays its own (views), so ``optimizer.step()``, ``state_dict()`` and checkpoints keep
+    working. Built only for a plain ``Adam`` (one group, no weight decay/amsgrad/maximize,
+    not capturable/differentiable/fused, float ``lr``).
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer, params: list[Tensor]) -> None:
+        self.optimizer = optimizer
+        self.params = params
+        total = sum(p.numel() for p in params)
+        ref = params[0]
+        self.param = torch.empty(total, dtype=ref.dtype, device=ref.device)
+        self.grad = torch.zeros_like(self.param)
+        self.exp_avg = torch.zeros_like(self.param)
+        self.exp_avg_sq = torch.zeros_like(self.param)
+        views: dict[str, list[Tensor]] = {"param": [], "grad": [], "exp_avg": [], "exp_avg_sq": []}
+        offset = 0
+        for p in params:
+            size = p.numel()
+            for name in views:
+                views[name].append(getattr(self, name)[offset : offset + size].view_as(p))
+            offset += size
+        self.views = views
+        state = optimizer.state
+        steps = []
+        with torch.no_grad():
+            for i, p in enumerate(params):
+                views["param"][i].copy_(p)
+                p.data = views["param"][i]
+                p.grad = views["grad"][i]
+                st = state[p]
+                if len(st) == 0:
+                    st["step"] = torch.tensor(0.0, dtype=_step_dtype())
+                else:
+                    views["exp_avg"][i].copy_(st["exp_avg"])
+                    views["exp_avg_sq"][i].copy_(st["exp_avg_sq"])
+                st["exp_avg"] = views["exp_avg"][i]
+                st["exp_avg_sq"] = views["exp_avg_sq"][i]
+                steps.append(st["step"])
+        self.steps = steps
+        self.step_count = 0.0
+        self.read_steps()
+
+    @classmethod
+    def build(cls, optimizer: torch.optim.Optimizer, params: list[Tensor]) -> _FlatAdam | None:
+        """A flat Adam over ``params`` if ``optimizer`` is a plain Adam over exactly them."""
+        return cls(optimizer, params) if cls.supports(optimizer, params) else None
+
+    @staticmethod
+    def supports(optimizer: torch.optim.Optimizer, params: list[Tensor]) -> bool:
+        """Whether ``optimizer`` is a plain Adam over exactly ``params``, with one step count."""
+        if type(optimizer) is not torch.optim.Adam or len(optimizer.param_groups) != 1:
+            return False
+        group = optimizer.param_groups[0]
+        plain = (
+            group["weight_decay"] == 0
+            and not group["amsgrad"]
+            and not group["maximize"]
+            and not group["capturable"]
+            and not group["differentiable"]
+            and not group["fused"]
+            and not group.get("decoupled_weight_decay", False)
+            and isinstance(group["lr"], float)
+            and all(isinstance(b, float) for b in group["betas"])
+        )
+        if not plain or [id(p) for p in group["params"]] != [id(p) for p in params]:
+            return False
+        if len({(p.dtype, p.device) for p in params}) != 1 or any(p.is_complex() for p in params):
+            return False
+        state = optimizer.state
+        if any(len(state[p]) not in (0, 3) for p in params) or any(
+            not (p.is_contiguous() and p.requires_grad) for p in params
+        ):
+            return False
+        counts = {float(state[p]["step"]) for p in params if len(state[p])}
+        return not (len(counts) > 1 or (counts and any(len(state[p]) == 0 for p in params)))
+
+    def bound(self) -> bool:
+        """Whether the parameters, gradients and optimiser state are still the flat views."""
+        state = self.optimizer.state
+        for i, p in enumerate(self.params):
+            st = state.get(p)
+            if (
+                p.data_ptr() != self.views["param"][i].data_ptr()
+                or p.grad is None
+                or p.grad.data_ptr() != self.views["grad"][i].data_ptr()
+                or st is None
+                or st.get("exp_avg") is not self.views["exp_avg"][i]
+                or st.get("exp_avg_sq") is not self.views["exp_avg_sq"][i]
+                or st.get("step") is not self.steps[i]
+            ):
+                return False
+        return True
+
+    def read_steps(self) -> None:
+        """Takes the step count from the optimiser state (it may have stepped on its own)."""
+        counts = {float(t) for t in self.steps}
+        if len(counts) != 1:
+            raise RuntimeError(f"the Adam parameters have different step counts {counts}")
+        self.step_count = counts.pop()
+
+    def write_steps(self) -> None:
+        """Writes the step count back to the optimiser state."""
+        for t in self.steps:
+            t.fill_(self.step_count)
+
+    @torch.no_grad()
+    def step(self, max_grad_norm: float | None, per_tensor_norms: bool = True) -> None:
+        """``clip_grad_norm_(params, max_grad_norm)`` then ``optimizer.step()``.
+
+        ``per_tensor_norms=False`` takes the norm of the flat gradient at once (the same
+        number up to float rounding) instead of the norm of the per-parameter norms.
+        """
+        grad = self.grad
+        if max_grad_norm is not None:
+            if per_tensor_norms:
+                norms = torch._foreach_norm(self.views["grad"], 2.0)
+                total_norm = torch.linalg.vector_norm(torch.stack(norms), 2.0)
+            else:
+                total_norm = torch.linalg.vector_norm(grad, 2.0)
+            grad.mul_(torch.clamp(max_grad_norm / (total_norm + 1e-6), max=1.0))
+        group = self.optimizer.param_groups[0]
+        lr = group["lr"]
+        beta1, beta2 = group["betas"]
+        self.step_count += 1.0
+        step = self.step_count
+        self.exp_avg.lerp_(grad, 1 - beta1)
+        self.exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        bias_correction1 = 1 - beta1**step
+        bias_correction2 = 1 - beta2**step
+        step_size = lr / bias_correction1
+        bias_correction2_sqrt = bias_correction2**0.5
+        denom = (self.exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(group["eps"])
+        self.param.addcdiv_(self.exp_avg, denom, value=-step_size)
+
+
+def _step_dtype() -> torch.dtype:
+    # torch.optim's scalar dtype for the ``step`` state: float64 when that is the default.
+    return torch.float64 if torch.get_default_dtype() == torch.float64 else torch.float32
+
+
+_LOG2 = math.log(2.0)
+_LOG2PI = math.log(2.0 * math.pi)
+_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+#: ``torch.finfo(torch.float).resolution``: the std floor of torchrl's advantage standardisation.
+_RESOLUTION = torch.finfo(torch.float).resolution
+
+
+def _normal_log_prob(value: Tensor, loc: Tensor, scale: Tensor) -> Tensor:
+    # torch.distributions.Normal.log_prob, term for term.
+    var = scale**2
+    return -((value - loc) ** 2) / (2 * var) - scale.log() - _LOG_SQRT_2PI
+
+
+def _sum_last(log_det: Tensor, like: Tensor) -> Tensor:
+    return log_det.sum(-1) if log_det.dim() == like.dim() else log_det
+
+
+def _plain_layers(net: nn.Module, owned: dict[int, Tensor]) -> list[Any]:
+    """``Linear`` layers as ``(F.linear, weight, bias)``, parameter-free layers as callables.
+
+    ``owned`` maps each module parameter to the tensor the loss trains (they differ when the
+    loss module was deep-copied); an opaque module with parameters is run as it is and must
+    hold the trained tensors itself.
+    """
+    if isinstance(net, nn.Linear):
+        return [(F.linear, owned[id(net.weight)], owned[id(net.bias)])]
+    if not isinstance(net, nn.Sequential):
+        for param in net.parameters():
+            if owned[id(param)] is not param:
+                raise ValueError(
+                    f"FusedPPOUpdate runs {type(net).__name__} as it is, but its parameters are "
+                    "not the tensors the loss trains (was the loss deep-copied?)"
+                )
+        return [net]
+    layers: list[Any] = []
+    for module in net.children():
+        layers += _plain_layers(module, owned)
+    return layers
+
+
+def _manual_spec(layers: list[Any]) -> list[Any] | None:
+    """Layers as ``Tensor`` pairs ``(weight, bias)`` and ``"relu"``/``"tanh"``, else ``None``."""
+    spec: list[Any] = []
+    for layer in layers:
+        if isinstance(layer, tuple) and layer[2] is not None:
+            # (weight, bias, weight.t()): parameters change in place, so the view stays valid
+            spec.append((layer[1], layer[2], layer[1].t()))
+        elif isinstance(layer, nn.ReLU):
+            spec.append("relu")
+        elif isinstance(layer, nn.Tanh):
+            spec.append("tanh")
+        else:
+            return None
+    return spec
+
+
+def _retranspose(spec: list[Any]) -> list[Any]:
+    return [(lay[0], lay[1], lay[0].t()) if isinstance(lay, tuple) else lay for lay in spec]
+
+
+def _standardize_minibatches(advantage: Tensor, size: int, normalize: bool) -> Tensor:
+    """Each run of ``size`` entries standardised as ``ClipPPOLoss`` does per minibatch."""
+    if not normalize:
+        return advantage
+    n = advantage.shape[0]
+    full = n - n % size
+    parts = []
+    if full:
+        a = advantage[:full].view(-1, size)
+        if size > 1:
+            std = a.std(1, keepdim=True).clamp_min(_RESOLUTION)
+            a = (a - a.mean(1, keepdim=True)) / std
+        parts.append(a.reshape(-1))
+    if full < n:
+        rest = advantage[full:]
+        if rest.numel() > 1:
+            rest = (rest - rest.mean()) / rest.std().clamp_min(_RESOLUTION)
+        parts.append(rest)
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+
+def _spec_forward(spec: list[Any], x: Tensor) -> tuple[Tensor, list[Tensor]]:
+    acts = [x]
+    for layer in spec:
+        if layer == "relu":
+            x = torch.relu(x)
+        elif layer == "tanh":
+            x = torch.tanh(x)
+        else:
+            x = torch.addmm(layer[1], x, layer[2])
+        acts.append(x)
+    return x, acts
+
+
+def _spec_backward(
+    spec: list[Any], acts: list[Tensor], grad: Tensor, grads: dict[int, Tensor]
+) -> None:
+    for k in range(len(spec) - 1, -1, -1):
+        layer = spec[k]
+        if layer == "relu":
+            grad = torch.ops.aten.threshold_backward(grad, acts[k + 1], 0)
+        elif layer == "tanh":
+            y = acts[k + 1]
+            grad = grad * (1.0 - y * y)
+        else:
+            weight, bias = layer[0], layer[1]
+            torch.mm(grad.t(), acts[k], out=grads[id(weight)])
+            torch.sum(grad, 0, out=grads[id(bias)])
+            if k > 0:
+                grad = grad.mm(weight)
+
+
+def _owned_params(module: nn.Module, params: Any) -> dict[int, Tensor]:
+    if params is None:  # a non-functional loss trains the module's own parameters
+        return {id(p): p for p in module.parameters()}
+    return {id(p): params.get(tuple(name.split("."))) for name, p in module.named_parameters()}
+
+
+def _policy_parts(actor: nn.Module) -> tuple[TensorDictModule, nn.Module]:
+    policy = dist_module = None
+    for module in actor.modules():
+        if isinstance(module, TensorDictModule) and list(module.out_keys) == ["loc", "scale"]:
+            policy = module
+        if getattr(module, "distribution_class", None) is not None and dist_module is None:
+            dist_module = module
+    if policy is None or dist_module is None or len(policy.in_keys) != 1:
+        raise ValueError(
+            "FusedPPOUpdate expects a ProbabilisticActor whose TensorDictModule reads one "
+            "observation key and writes ['loc', 'scale'] (see make_ppo_actor_critic)"
+        )
+    return policy, dist_module
+
+
+_DISTANCES = {"l2": F.mse_loss, "l1": F.l1_loss, "smooth_l1": F.smooth_l1_loss}
+
+
+def _check_loss(loss: ClipPPOLoss) -> None:
+    unsupported = {
+        "clip_value": loss.clip_value is not None,
+        "delay_actor": bool(loss.delay_actor),
+        "max_importance_ratio": loss.max_importance_ratio is not None,
+        "advantage_norm": loss.advantage_norm is not None,
+        "normalize_advantage_exclude_dims": bool(loss.normalize_advantage_exclude_dims),
+        "entropy_bonus=False": not loss.entropy_bonus,
+        "per-head entropy_coeff": getattr(loss, "_entropy_coeff_map", None) is not None,
+        "no critic loss": loss.critic_coeff is None or not bool(loss.critic_coeff > 0),
+        f"reduction={loss.reduction!r}": loss.reduction != "mean",
+        f"loss_critic_type={loss.loss_critic_type!r}": loss.loss_critic_type not in _DISTANCES,
+    }
+    bad = [name for name, flag in unsupported.items() if flag]
+    if bad:
+        raise ValueError(f"FusedPPOUpdate does not support ClipPPOLoss with {', '.join(bad)}")
+    if not isinstance(loss.tensor_keys.action, str) or not isinstance(
+        loss.tensor_keys.sample_log_prob, str
+    ):
+        raise ValueError("FusedPPOUpdate expects a single action and log-prob key")
+
+
+def _check_gae(gae: GAE, loss: ClipPPOLoss) -> None:
+    bad = []
+    if gae.shifted:
+        bad.append("shifted=True")
+    if gae.average_gae:
+        bad.append("average_gae=True")
+    if getattr(gae, "auto_reset_env", False):
+        bad.append("auto_reset_env=True")
+    if gae.value_network is None:
+        bad.append("no value network")
+    elif gae.value_network is not loss.critic_network and list(
+        gae.value_network.parameters()
+    ) != list(loss.critic_network.parameters()):
+        bad.append("a value network other than the loss critic")
+    if bad:
+        raise ValueError(f"FusedPPOUpdate does not support GAE with {', '.join(bad)}")
+
+
+def make_test_ppo(
+    frames: int = 64,
+    num_envs: int | None = None,
+    obs_dim: int = 5,
+    action_dim: int = 2,
+    hidden: int = 16,
+    distribution: str = "tanh_normal",
+) -> tuple[ClipPPOLoss, GAE, TensorDictBase]:
+    """A small ``ClipPPOLoss``, its ``GAE`` and a random rollout batch, for examples and tests.
+
+    The batch carries done/terminated/truncated flags (about 5% each) and log-probabilities of
+    its actions under the actor, as a collector batch does.
+
+    Args:
+        frames: time steps per env. Defaults to 64.
+        num_envs: a leading env dimension (``[num_envs, frames]``), ``None`` for ``[frames]``.
+        obs_dim: observation size. Defaults to 5.
+        action_dim: action size (bounds ``[-1, 1]``). Defaults to 2.
+        hidden: hidden width (two layers). Defaults to 16.
+        distribution: ``"tanh_normal"`` or ``"normal"``, as in
+            :func:`~torchrl_mbmf.modules.make_ppo_actor_critic`.
+
+    Returns:
+        ``(loss, gae, batch)``.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.ppo import make_test_ppo
+        >>> loss, gae, batch = make_test_ppo(frames=8, num_envs=2)
+        >>> batch.batch_size
+        torch.Size([2, 8])
+    """
+    from tensordict import TensorDict
+    from torchrl.data import Bounded, Composite, Unbounded
+    from torchrl.envs import EnvBase
+
+    from torchrl_mbmf.modules import make_ppo_actor_critic
+
+    class _SpecOnly(EnvBase):
+        def __init__(self) -> None:
+            super().__init__()
+            self.observation_spec = Composite(observation=Unbounded((obs_dim,)))
+            self.action_spec = Bounded(-1.0, 1.0, (action_dim,))
+            self.reward_spec = Unbounded((1,))
+
+        def _reset(self, tensordict):  # pragma: no cover - specs only
+            raise NotImplementedError
+
+        def _step(self, tensordict):  # pragma: no cover - specs only
+            raise NotImplementedError
+
+        def _set_seed(self, seed):  # pragma: no cover - specs only
+            return seed
+
+    actor, critic = make_ppo_actor_critic(
+        _SpecOnly(), hidden_sizes=(hidden, hidden), distribution=distribution
+    )
+    loss = ClipPPOLoss(
+        actor,
+        critic,
+        clip_epsilon=0.2,
+        entropy_coeff=1e-4,
+        critic_coeff=0.5,
+        normalize_advantage=True,
+    )
+    gae = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False)
+    shape = (frames,) if num_envs is None else (num_envs, frames)
+    obs = torch.randn(*shape, obs_dim)
+    next_obs = torch.cat([obs[..., 1:, :], torch.randn(*shape[:-1], 1, obs_dim)], -2)
+    terminated = torch.rand(*shape, 1) < 0.05
+    truncated = (torch.rand(*shape, 1) < 0.05) & ~terminated
+    batch = TensorDict(
+        {
+            "observation": obs,
+            "next": {
+                "observation": next_obs,
+                "reward": torch.randn(*shape, 1),
+                "terminated": terminated,
+                "truncated": truncated,
+                "done": terminated | truncated,
+            },
+        },
+        batch_size=shape,
+    )
+    with torch.no_grad():
+        actor(batch)
+    return loss, gae, batch
