@@ -8,7 +8,7 @@ from torchrl_mbmf.trainers.ensemble_fit import (
 )
 from torchrl_mbmf.trainers.export import load_policy, save_policy
 from torchrl_mbmf.trainers.loop import Trainer, seed_everything
-from torchrl_mbmf.trainers.ppo import ppo_update
+from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
 __all__ = [
@@ -17,6 +17,7 @@ __all__ = [
     "DisagreementCalibration",
     "EnsembleFitHistory",
     "FitHistory",
+    "FusedPPOUpdate",
     "FusedSACUpdate",
     "Trainer",
     "calibrate_disagreement_threshold",

@@ -16,6 +16,7 @@ MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc")
 PPO_METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc")
 SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
 COLLECTORS: tuple[str, ...] = ("lean", "stock")
+PPO_UPDATES: tuple[str, ...] = ("fused", "fused_autograd", "stock")
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
 REFINEMENTS: tuple[str | None, ...] = (None, "cem", "mppi")
 
@@ -63,6 +64,10 @@ def validate_train_config(cfg: Any) -> None:
     if cfg["sac"].get("update", "stock") not in SAC_UPDATES:
         raise ConfigError(
             f"sac.update={cfg['sac']['update']!r} is not supported; allowed: {list(SAC_UPDATES)}"
+        )
+    if cfg["ppo"].get("update", "stock") not in PPO_UPDATES:
+        raise ConfigError(
+            f"ppo.update={cfg['ppo']['update']!r} is not supported; allowed: {list(PPO_UPDATES)}"
         )
     if cfg.get("collector", "lean") not in COLLECTORS:
         raise ConfigError(

@@ -51,7 +51,7 @@ from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_trai
 from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
-from torchrl_mbmf.trainers.ppo import ppo_update
+from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
 logger = logging.getLogger(__name__)
@@ -299,6 +299,17 @@ class Trainer:
             )
             self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr))
             self.replay = None
+            self.ppo_step = None
+            if c.get("update", "stock") != "stock":
+                self.ppo_step = FusedPPOUpdate(
+                    self.loss,
+                    self.gae,
+                    self.optim,
+                    epochs=int(c.epochs),
+                    minibatch_size=int(c.minibatch_size),
+                    max_grad_norm=float(c.max_grad_norm),
+                    gradients="manual" if c.update == "fused" else "autograd",
+                )
         else:
             c = cfg.sac
             self.actor, qvalue = make_sac_actor_critic(self.env, hidden_sizes=tuple(c.hidden_sizes))
@@ -573,15 +584,18 @@ class Trainer:
     def ppo_update(self, batch: TensorDictBase) -> None:
         """Thesis PPO: GAE once per batch, ``epochs`` passes of ``minibatch_size`` minibatches."""
         c = self.cfg.ppo
-        stats = ppo_update(
-            self.loss,
-            self.gae,
-            self.optim,
-            batch,
-            epochs=int(c.epochs),
-            minibatch_size=int(c.minibatch_size),
-            max_grad_norm=float(c.max_grad_norm),
-        )
+        if self.ppo_step is not None:
+            stats = self.ppo_step(batch)
+        else:
+            stats = ppo_update(
+                self.loss,
+                self.gae,
+                self.optim,
+                batch,
+                epochs=int(c.epochs),
+                minibatch_size=int(c.minibatch_size),
+                max_grad_norm=float(c.max_grad_norm),
+            )
         self.progress["updates"] += 1
         scale = self.actor.module[0].module[-1].state_independent_scale
         self.log({f"loss/{k}": v for k, v in stats.items()})
