@@ -2,7 +2,7 @@
 
     pip install -e ".[bench]"
     python benchmarks/peers.py                        # ppo, sac (vs SB3), ppo_mpc, sac_mpc (ours)
-    python benchmarks/peers.py --quick                # tiny budgets: a smoke test
+    python benchmarks/peers.py --quick                # tiny budgets, one repetition: a smoke test
     python benchmarks/peers.py --methods ppo,sac --repeats 3 --threads 2
 
 Every run is a fresh process that trains from scratch for the same real step budget, seed and
@@ -58,17 +58,18 @@ PACKAGES = (
     "stable-baselines3",
 )
 
-# Real step budgets: (full, --quick). SAC collects 1000-step batches, so its budgets are
-# multiples of 1000 (a run stops at the first batch boundary at or past total_steps).
+# Real step budgets: (full, --quick). A run of ours stops at the first batch boundary at or past
+# total_steps: SAC collects 1000-step batches (budgets: multiples of 1000), the model-based
+# methods their random steps first (ppo_mpc: random + updates x 2048, sac_mpc: random + k x 1000).
 BUDGETS = {
     "ppo_steps": (20480, 2048),
-    "sac_steps": (8000, 2000),
-    "sac_random": (3000, 1000),
+    "sac_steps": (8000, 1000),
+    "sac_random": (3000, 500),
     "ppo_mpc_steps": (20240, 3048),
     "ppo_mpc_random": (10000, 1000),
     "ppo_mpc_updates": (5, 1),
-    "sac_mpc_steps": (8000, 2000),
-    "sac_mpc_random": (3000, 1000),
+    "sac_mpc_steps": (8000, 1500),
+    "sac_mpc_random": (3000, 500),
 }
 
 
@@ -234,9 +235,15 @@ def run_ours(
         c = cfg.sac
         grad_steps = summary["updates"] * max(1, int(int(c.frames_per_batch) * float(c.utd_ratio)))
     breakdown = summary.get("time_breakdown")
+    random_steps = int(summary["random_steps"])  # the world model's random data
+    if method == "sac":  # random-policy batches until init_random_frames
+        frames = int(c.frames_per_batch)
+        random_steps = min(
+            int(summary["real_steps"]), -(-int(c.init_random_frames) // frames) * frames
+        )
     return {
         "steps": int(summary["real_steps"]),
-        "random_steps": int(summary["random_steps"]),
+        "random_steps": random_steps,
         "seconds": float(summary["seconds"]),
         "grad_steps": int(grad_steps),
         "torch_threads": torch_threads,
@@ -342,7 +349,9 @@ def main() -> None:
     )
     parser.add_argument("--sb3-worker", metavar="SPEC", help=argparse.SUPPRESS)
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods")
-    parser.add_argument("--repeats", type=int, default=2, help="repetitions per side (default 2)")
+    parser.add_argument(
+        "--repeats", type=int, help="repetitions per side (default 2, 1 with --quick)"
+    )
     parser.add_argument("--threads", type=int, default=1, help="threads per run (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of every run (default 0)")
     parser.add_argument("--quick", action="store_true", help="tiny budgets: a smoke test")
@@ -369,6 +378,8 @@ def main() -> None:
     unknown = [m for m in methods if m not in METHODS]
     if unknown or not methods:
         parser.error(f"--methods {args.methods!r}: expected a comma-separated subset of {METHODS}")
+    if args.repeats is None:
+        args.repeats = 1 if args.quick else 2
     for name in ("repeats", "threads"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")

@@ -1,4 +1,8 @@
-"""benchmarks/peers.py --quick runs ours and SB3's PPO side by side (skipped without SB3)."""
+"""benchmarks/peers.py --quick runs ours and SB3's PPO side by side.
+
+Skipped without stable-baselines3 (the ``bench`` extra) and marked slow: two fresh training
+processes take 30-40 s on an idle 2-vCPU machine, two minutes on a busy one.
+"""
 
 from __future__ import annotations
 
@@ -15,6 +19,7 @@ pytest.importorskip("stable_baselines3")
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow
 def test_quick_ppo_side_by_side(tmp_path):
     out = tmp_path / "peers.json"
     proc = subprocess.run(
