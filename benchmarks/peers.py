@@ -4,6 +4,7 @@
     python benchmarks/peers.py                        # ppo, sac (vs SB3), ppo_mpc, sac_mpc (ours)
     python benchmarks/peers.py --quick                # tiny budgets, one repetition: a smoke test
     python benchmarks/peers.py --methods ppo,sac --repeats 3 --threads 2
+    python benchmarks/peers.py --methods ppo --ours-override collector=stock
 
 Every run is a fresh process that trains from scratch for the same real step budget, seed and
 thread count (torch threads and OMP/MKL/OpenBLAS env vars): ours is ``recipes/train.py`` (no
@@ -357,6 +358,14 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="tiny budgets: a smoke test")
     parser.add_argument("--out", type=Path, help="JSON path (default results/peers.json)")
     parser.add_argument(
+        "--ours-override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra recipes/train.py override for every run of ours (repeatable), for example "
+        "collector=stock",
+    )
+    parser.add_argument(
         "--eval-episodes",
         type=int,
         default=0,
@@ -410,6 +419,7 @@ def main() -> None:
         "threads": args.threads,
         "repeats": args.repeats,
         "eval_episodes": args.eval_episodes,
+        "ours_overrides": args.ours_override,
         "seed": args.seed,
         "budgets": budget,
         "versions": versions,
@@ -417,6 +427,7 @@ def main() -> None:
     runs: list[dict[str, Any]] = []
     for method in methods:
         steps, overrides = our_overrides(method, budget, args.quick)
+        overrides += args.ours_override
         for rep in range(args.repeats):
             impls = ["ours"] + (["sb3"] if with_sb3 and method in SB3_ALGO else [])
             for impl in impls:
