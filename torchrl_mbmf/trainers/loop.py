@@ -611,13 +611,21 @@ class Trainer:
         return batch.reshape(-1).select(*self.loss.in_keys, strict=False)
 
     def sac_update(self, batch: TensorDictBase) -> None:
-        """``utd_ratio`` SAC updates per collected frame, after the initial random frames."""
+        """``utd_ratio`` SAC updates per collected frame past the initial random frames.
+
+        As in Stable-Baselines3 (``learning_starts``) and torchrl's SAC recipe: the frames up
+        to ``sac.init_random_frames`` take no update, every later frame ``utd_ratio`` updates
+        (done after each collected batch).
+        """
         c = self.cfg.sac
         self.replay.extend(self._replay_view(batch))
-        if self.progress["real_steps"] < int(c.init_random_frames):
+        steps = self.progress["real_steps"]
+        past = steps - max(int(c.init_random_frames), steps - batch.numel())
+        updates = round(past * float(c.utd_ratio))
+        if updates <= 0:
             return
         stats: dict[str, list[float]] = {}
-        for _ in range(max(1, int(batch.numel() * float(c.utd_ratio)))):
+        for _ in range(updates):
             out = self.sac_step(self.replay.sample())
             for k, v in out.items():
                 stats.setdefault(k, []).append(float(v))
