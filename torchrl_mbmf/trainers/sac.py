@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import Tensor, nn
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
 _LOG2 = float(torch.log(torch.tensor(2.0)))
@@ -119,6 +120,19 @@ class FusedSACUpdate:
         self._affine_loc = (high + low) / 2
         self._affine_scale = (high - low) / 2
         self._log_affine = self._affine_scale.abs().log().sum()
+        self._q_linear = [t for t in self._q_params if not callable(t)]
+        self._q_target_linear = [t for t in self._q_target if not callable(t)]
+        self._q_acts = _activations(layers)
+        # The soft target update as plain in-place lerps when it is a stock SoftUpdate of the
+        # Q-networks only (what SoftUpdate.step does, without the tensordict traversal).
+        self._lerp_weight: float | None = None
+        if (
+            type(target_updater) is SoftUpdate
+            and target_updater.loss_module is loss
+            and not getattr(loss, "delay_actor", False)
+            and getattr(loss, "delay_qvalue", True)
+        ):
+            self._lerp_weight = 1.0 - float(target_updater.eps)
 
     # ------------------------------------------------------------------ pieces
     @staticmethod
@@ -179,25 +193,258 @@ class FusedSACUpdate:
         loss_alpha = (-loss.log_alpha * (log_prob + loss.target_entropy)).mean()
         return loss_actor, loss_qvalue, loss_alpha, log_prob
 
-    def __call__(self, batch: TensorDictBase) -> dict[str, Tensor]:
-        """One update on a replay-buffer batch (``[B]``); returns the detached losses."""
-        loss_actor, loss_qvalue, loss_alpha, _ = self.losses(
-            batch.get(self.observation_key),
-            batch.get(self.action_key),
-            batch.get(("next", "reward")).squeeze(-1),
-            batch.get(("next", self.observation_key)),
-            batch.get(("next", "terminated")).squeeze(-1),
-        )
+    def _q_forward(
+        self, linear: list[Tensor], x: Tensor
+    ) -> tuple[Tensor, list[Tensor], list[Tensor | None]]:
+        """Q-values ``[n_q, N]`` of every member on shared inputs ``x`` ``[N, in]``.
+
+        Also returns the hidden outputs and, for generic activations, their inputs (what the
+        backward needs).
+        """
+        n = linear[0].shape[0]
+        h = x.unsqueeze(0).expand(n, *x.shape)
+        outs: list[Tensor] = []
+        pres: list[Tensor | None] = []
+        for i, act in enumerate(self._q_acts):
+            z = torch.baddbmm(linear[2 * i + 1].unsqueeze(1), h, linear[2 * i].transpose(1, 2))
+            if act == "relu":
+                h, pre = z.relu_(), None
+            elif act == "tanh":
+                h, pre = z.tanh_(), None
+            else:
+                h, pre = act(z), z
+            outs.append(h)
+            pres.append(pre)
+        out = torch.baddbmm(linear[-1].unsqueeze(1), h, linear[-2].transpose(1, 2))
+        return out.squeeze(-1), outs, pres
+
+    def _q_backward(
+        self,
+        x: Tensor,
+        outs: list[Tensor],
+        pres: list[Tensor | None],
+        grad: Tensor,
+        rows: int,
+        skip: int,
+    ) -> tuple[list[Tensor], Tensor]:
+        """Backward of :meth:`_q_forward` on the online Q-parameters for ``grad`` ``[n_q, N]``.
+
+        The parameter gradients take the first ``rows`` rows only (the Q loss); the gradient of
+        the inputs past column ``skip`` (the action), summed over the members, is returned for
+        the remaining rows (the actor loss against the detached Q-networks).
+        """
+        linear = self._q_linear
+        d = grad.unsqueeze(-1)
+        grads: list[Tensor] = list(linear)
+        for i in range(len(self._q_acts), -1, -1):
+            weight = linear[2 * i]
+            top = d[:, :rows]
+            grads[2 * i + 1] = top.sum(1)
+            if i == 0:
+                inp = x[:rows].expand(weight.shape[0], -1, -1)
+                grads[0] = torch.bmm(top.transpose(1, 2), inp)
+                return grads, torch.bmm(d[:, rows:], weight[:, :, skip:]).sum(0)
+            grads[2 * i] = torch.bmm(top.transpose(1, 2), outs[i - 1][:, :rows])
+            d = torch.bmm(d, weight)
+            act = self._q_acts[i - 1]
+            if act == "relu":
+                d = torch.ops.aten.threshold_backward(d, outs[i - 1], 0)
+            elif act == "tanh":
+                d = torch.ops.aten.tanh_backward(d, outs[i - 1])
+            else:
+                with torch.enable_grad():
+                    z = pres[i - 1].detach().requires_grad_()
+                    (d,) = torch.autograd.grad(act(z), z, d)
+        raise AssertionError("unreachable")
+
+    def update(
+        self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor
+    ) -> dict[str, Tensor]:
+        """One update on a batch of tensors: the losses, their gradients, the step, the targets.
+
+        The Q-networks' forward and backward are written out (the current-state Q-values of the
+        replayed and of the new actions share one pass through the online Q-parameters; only
+        the replayed rows give those parameters gradients, the new-action rows only give the
+        action gradient for the actor), the actor's gradient comes from autograd and the
+        temperature's in closed form. The parameters receive the gradients of
+        ``loss_actor + loss_qvalue + loss_alpha`` of the stock loss (tested against
+        ``SACLoss``), then the optimiser steps and the target Q-networks are soft-updated.
+
+        Args:
+            obs: observations ``[B, obs_dim]``.
+            action: actions taken ``[B, action_dim]``.
+            reward: rewards ``[B]`` or ``[B, 1]``.
+            next_obs: next observations ``[B, obs_dim]``.
+            terminated: terminal flags ``[B]`` or ``[B, 1]`` (bool).
+
+        Returns:
+            ``{"loss_actor", "loss_qvalue", "loss_alpha", "alpha"}``: 0-dim detached tensors
+            (no host synchronisation; average them when logging).
+
+        Examples:
+            >>> import torch
+            >>> from torchrl.objectives import SoftUpdate
+            >>> from torchrl_mbmf.trainers.sac import FusedSACUpdate, make_test_sac_loss
+            >>> loss, b = make_test_sac_loss(batch_size=8)
+            >>> optim = torch.optim.Adam(loss.parameters())
+            >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.1))
+            >>> out = step.update(b["observation"], b["action"], b["next", "reward"].squeeze(-1),
+            ...                   b["next", "observation"], b["next", "terminated"].squeeze(-1))
+            >>> out["loss_qvalue"].shape
+            torch.Size([])
+        """
+        loss = self.loss
+        log_alpha = loss.log_alpha
+        batch = obs.shape[0]
+        reward = reward.reshape(batch)
+        terminated = terminated.reshape(batch)
+        with torch.no_grad():
+            alpha = log_alpha.exp()
+            next_action, next_log_prob = self._sample(next_obs)
+            next_q, _, _ = self._q_forward(
+                self._q_target_linear, torch.cat([next_obs, next_action], -1)
+            )
+            next_value = (next_q - alpha * next_log_prob).min(0).values
+            target = reward + self.gamma * (~terminated).to(reward.dtype) * next_value
+        new_action, log_prob = self._sample(obs)
+        with torch.no_grad():
+            x = torch.cat(
+                [torch.cat([obs, action], -1), torch.cat([obs, new_action.detach()], -1)], 0
+            )
+            q, outs, pres = self._q_forward(self._q_linear, x)
+            diff = q[:, :batch] - target
+            loss_qvalue = F.smooth_l1_loss(diff, torch.zeros_like(diff), reduction="none")
+            loss_qvalue = loss_qvalue.sum(0).mean()
+            q_pi, argmin = q[:, batch:].min(0)
+            scale = 1.0 / batch
+            grad = torch.zeros_like(q)
+            grad[:, :batch] = diff.clamp(-1.0, 1.0).mul_(scale)
+            grad[:, batch:].scatter_(0, argmin.unsqueeze(0), -scale)
+            q_grads, action_grad = self._q_backward(x, outs, pres, grad, batch, obs.shape[-1])
+            log_prob_d = log_prob.detach()
+            loss_actor = (alpha * log_prob_d - q_pi).mean()
+            loss_alpha = (-log_alpha * (log_prob_d + loss.target_entropy)).mean()
+            alpha_grad = -(log_prob_d + loss.target_entropy).mean()
         self.optimizer.zero_grad(set_to_none=True)
-        (loss_actor + loss_qvalue + loss_alpha).backward()
+        torch.autograd.backward(
+            [log_prob, new_action],
+            [(alpha * scale).expand_as(log_prob), action_grad],
+        )
+        for param, g in zip(self._q_linear, q_grads, strict=True):
+            param.grad = g.view_as(param)
+        log_alpha.grad = alpha_grad.reshape(log_alpha.shape).to(log_alpha.dtype)
         self.optimizer.step()
-        self.target_updater.step()
+        self._target_step()
         return {
-            "loss_actor": loss_actor.detach(),
-            "loss_qvalue": loss_qvalue.detach(),
-            "loss_alpha": loss_alpha.detach(),
-            "alpha": self.loss.log_alpha.detach().exp(),
+            "loss_actor": loss_actor,
+            "loss_qvalue": loss_qvalue,
+            "loss_alpha": loss_alpha,
+            "alpha": log_alpha.detach().exp(),
         }
+
+    def _target_step(self) -> None:
+        if self._lerp_weight is None or not self.target_updater.initialized:
+            self.target_updater.step()
+            return
+        with torch.no_grad():
+            for target, source in zip(self._q_target_linear, self._q_linear, strict=True):
+                target.lerp_(source, self._lerp_weight)
+
+    @property
+    def batch_keys(self) -> tuple[Any, ...]:
+        """The batch entries :meth:`update` takes, in its argument order."""
+        obs, action = self.observation_key, self.action_key
+        obs_next = ("next", *obs) if isinstance(obs, tuple) else ("next", obs)
+        return obs, action, ("next", "reward"), obs_next, ("next", "terminated")
+
+    def __call__(self, batch: TensorDictBase) -> dict[str, Tensor]:
+        """One update on a replay-buffer batch (``[B]``); see :meth:`update`."""
+        return self.update(*(batch.get(key) for key in self.batch_keys))
+
+
+class ReplaySampler:
+    """Draws replay batches as plain tensors, the rows the buffer's own ``sample()`` would draw.
+
+    ``TensorDictReplayBuffer.sample()`` on a ``LazyTensorStorage`` with the stock
+    ``RandomSampler`` draws ``torch.randint(0, len(storage), (batch_size,))`` and gathers the
+    rows through tensordict indexing; this draws the same indices from the same (global) random
+    stream and gathers only the requested entries with :meth:`torch.Tensor.index_select` on
+    views of the storage's preallocated tensors, so a run samples the same rows either way
+    (tested). The buffer keeps owning the data: writes, ``len``, checkpoints
+    (``buffer.storage[:filled]``, ``buffer.writer.state_dict()``) are unchanged. Rows come
+    back as new tensors (the buffer may overwrite its rows later).
+
+    Args:
+        buffer: a ``TensorDictReplayBuffer`` over a ``LazyTensorStorage`` (one-dimensional)
+            with a ``RandomSampler`` (the default).
+        keys: the entries to return, in order (e.g. :attr:`FusedSACUpdate.batch_keys`).
+
+    Keyword Args:
+        batch_size: rows per batch. Defaults to the buffer's batch size.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> from torchrl_mbmf.trainers.sac import ReplaySampler
+        >>> buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+        >>> data = TensorDict({"x": torch.arange(10.0), "next": {"y": torch.ones(10, 2)}}, [10])
+        >>> _ = buffer.extend(data)
+        >>> sampler = ReplaySampler(buffer, ["x", ("next", "y")])
+        >>> x, y = sampler()
+        >>> x.shape, y.shape
+        (torch.Size([4]), torch.Size([4, 2]))
+    """
+
+    def __init__(
+        self,
+        buffer: TensorDictReplayBuffer,
+        keys: Sequence[NestedKey],
+        *,
+        batch_size: int | None = None,
+    ) -> None:
+        if not isinstance(buffer.storage, LazyTensorStorage) or buffer.storage.ndim != 1:
+            raise ValueError(
+                f"ReplaySampler expects a one-dimensional LazyTensorStorage, got {buffer.storage}"
+            )
+        if type(buffer.sampler) is not RandomSampler:
+            raise ValueError(
+                f"ReplaySampler draws what RandomSampler draws, got {type(buffer.sampler).__name__}"
+            )
+        batch_size = buffer.batch_size if batch_size is None else batch_size
+        if batch_size is None or int(batch_size) < 1:
+            raise ValueError(f"ReplaySampler needs a positive batch_size, got {batch_size}")
+        if not keys:
+            raise ValueError("ReplaySampler needs at least one key")
+        self.buffer = buffer
+        self.keys = list(keys)
+        self.batch_size = int(batch_size)
+        self._leaves: list[Tensor] | None = None
+        self._seen = 0
+
+    def refresh(self) -> None:
+        """Looks the storage tensors up again (done automatically when the buffer shrinks)."""
+        storage = self.buffer.storage
+        if len(storage) == 0:
+            raise RuntimeError("ReplaySampler: the replay buffer is empty")
+        first = storage[:1]
+        leaves = []
+        for key in self.keys:
+            row = first.get(key)
+            if not row.is_contiguous():
+                raise ValueError(f"ReplaySampler: storage entry {key!r} is not contiguous")
+            shape = (storage.max_size, *row.shape[1:])
+            leaves.append(row.as_strided(shape, row.stride(), row.storage_offset()))
+        self._leaves = leaves
+
+    def __call__(self) -> tuple[Tensor, ...]:
+        """One batch: a tensor ``[batch_size, ...]`` per key."""
+        filled = len(self.buffer.storage)
+        if self._leaves is None or filled < self._seen:
+            self.refresh()
+        self._seen = filled
+        index = torch.randint(0, filled, (self.batch_size,))
+        return tuple(leaf.index_select(0, index) for leaf in self._leaves)
 
 
 _LOG2PI = float(torch.log(torch.tensor(2.0 * torch.pi)))
@@ -224,6 +471,26 @@ def _stack(params: TensorDictBase, layers: list[tuple[str, Any]]) -> list[Any]:
         else:
             out.append(key)
     return out
+
+
+def _activations(layers: list[tuple[str, Any]]) -> list[Any]:
+    """The activation between consecutive linear layers: ``"relu"``, ``"tanh"`` or the module."""
+    kinds = [kind for kind, _ in layers]
+    expected = ["linear"] + ["fn", "linear"] * ((len(layers) - 1) // 2)
+    if kinds != expected:
+        raise ValueError(
+            f"FusedSACUpdate expects a Q-network of Linear layers with one activation between "
+            f"consecutive ones, got layers {kinds}"
+        )
+    acts: list[Any] = []
+    for _, module in layers[1::2]:
+        if type(module) is nn.ReLU:
+            acts.append("relu")
+        elif type(module) is nn.Tanh:
+            acts.append("tanh")
+        else:
+            acts.append(module)
+    return acts
 
 
 def _q_layers(qvalue: nn.Module) -> list[tuple[str, Any]]:
@@ -255,7 +522,11 @@ def _action_bounds(actor: nn.Module) -> tuple[Tensor, Tensor]:
 
 
 def make_test_sac_loss(
-    batch_size: int = 8, obs_dim: int = 3, action_dim: int = 2, hidden: int = 16
+    batch_size: int = 8,
+    obs_dim: int = 3,
+    action_dim: int = 2,
+    hidden: int = 16,
+    activation: type[nn.Module] = nn.Tanh,
 ) -> tuple[SACLoss, TensorDictBase]:
     """A small ``SACLoss`` and a random replay batch, for examples and tests.
 
@@ -264,6 +535,8 @@ def make_test_sac_loss(
         obs_dim: observation size. Defaults to 3.
         action_dim: action size. Defaults to 2.
         hidden: hidden width (two layers). Defaults to 16.
+        activation: hidden activation of both networks. Defaults to :class:`torch.nn.Tanh`
+            (``MLP``'s default; the training networks use :class:`torch.nn.ReLU`).
 
     Returns:
         ``(loss, batch)``.
@@ -280,7 +553,12 @@ def make_test_sac_loss(
 
     spec = Bounded(-2.0, 2.0, (action_dim,))
     net = nn.Sequential(
-        MLP(in_features=obs_dim, out_features=2 * action_dim, num_cells=[hidden, hidden]),
+        MLP(
+            in_features=obs_dim,
+            out_features=2 * action_dim,
+            num_cells=[hidden, hidden],
+            activation_class=activation,
+        ),
         NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
     )
     actor = ProbabilisticActor(
@@ -292,7 +570,12 @@ def make_test_sac_loss(
         return_log_prob=True,
     )
     qvalue = ValueOperator(
-        MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=[hidden, hidden]),
+        MLP(
+            in_features=obs_dim + action_dim,
+            out_features=1,
+            num_cells=[hidden, hidden],
+            activation_class=activation,
+        ),
         in_keys=["observation", "action"],
     )
     loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=spec)
