@@ -123,6 +123,9 @@ class FusedSACUpdate:
         self._q_linear = [t for t in self._q_params if not callable(t)]
         self._q_target_linear = [t for t in self._q_target if not callable(t)]
         self._q_acts = _activations(layers)
+        # The actor's MLP by hand as well when it is Sequential(MLP, NormalParamExtractor)
+        # (autograd then only runs through the head and the TanhNormal sample).
+        self._actor = _split_policy(self._policy_net)
         # The soft target update as plain in-place lerps when it is a stock SoftUpdate of the
         # Q-networks only (what SoftUpdate.step does, without the tensordict traversal).
         self._lerp_weight: float | None = None
@@ -153,7 +156,9 @@ class FusedSACUpdate:
 
     def _sample(self, obs: Tensor) -> tuple[Tensor, Tensor]:
         """Reparameterised TanhNormal action and its log-probability."""
-        loc, scale = self._policy_net(obs)
+        return self._tanh_normal(*self._policy_net(obs))
+
+    def _tanh_normal(self, loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
         eps = torch.randn_like(loc)
         pre = loc + scale * eps
         log_prob = (-0.5 * eps.pow(2) - scale.log() - 0.5 * _LOG2PI).sum(-1)
@@ -192,73 +197,6 @@ class FusedSACUpdate:
         log_prob = log_prob.detach()
         loss_alpha = (-loss.log_alpha * (log_prob + loss.target_entropy)).mean()
         return loss_actor, loss_qvalue, loss_alpha, log_prob
-
-    def _q_forward(
-        self, linear: list[Tensor], x: Tensor
-    ) -> tuple[Tensor, list[Tensor], list[Tensor | None]]:
-        """Q-values ``[n_q, N]`` of every member on shared inputs ``x`` ``[N, in]``.
-
-        Also returns the hidden outputs and, for generic activations, their inputs (what the
-        backward needs).
-        """
-        n = linear[0].shape[0]
-        h = x.unsqueeze(0).expand(n, *x.shape)
-        outs: list[Tensor] = []
-        pres: list[Tensor | None] = []
-        for i, act in enumerate(self._q_acts):
-            z = torch.baddbmm(linear[2 * i + 1].unsqueeze(1), h, linear[2 * i].transpose(1, 2))
-            if act == "relu":
-                h, pre = z.relu_(), None
-            elif act == "tanh":
-                h, pre = z.tanh_(), None
-            else:
-                h, pre = act(z), z
-            outs.append(h)
-            pres.append(pre)
-        out = torch.baddbmm(linear[-1].unsqueeze(1), h, linear[-2].transpose(1, 2))
-        return out.squeeze(-1), outs, pres
-
-    def _q_backward(
-        self,
-        x: Tensor,
-        outs: list[Tensor],
-        pres: list[Tensor | None],
-        grad: Tensor,
-        rows: int,
-        skip: int,
-    ) -> tuple[list[Tensor], Tensor]:
-        """Backward of :meth:`_q_forward` on the online Q-parameters for ``grad`` ``[n_q, N]``.
-
-        The parameter gradients take the first ``rows`` rows only (the Q loss); the gradient of
-        the inputs past column ``skip`` (the action), summed over the members, is returned for
-        the remaining rows (the actor loss against the detached Q-networks).
-        """
-        linear = self._q_linear
-        d = grad.unsqueeze(-1)
-        grads: list[Tensor] = list(linear)
-        for i in range(len(self._q_acts), -1, -1):
-            weight = linear[2 * i]
-            top = d[:, :rows]
-            grads[2 * i + 1] = top.sum(1)
-            if i == 0:
-                # Both products have a narrow side (the input width, the action width); MKL
-                # runs them several times faster with it as the output's rows.
-                inp = x[:rows].t().expand(weight.shape[0], -1, -1)
-                grads[0] = torch.bmm(inp, top).transpose(1, 2).contiguous()
-                action = weight[:, :, skip:].transpose(1, 2)
-                return grads, torch.bmm(action, d[:, rows:].transpose(1, 2)).sum(0).t()
-            grads[2 * i] = torch.bmm(top.transpose(1, 2), outs[i - 1][:, :rows])
-            d = torch.bmm(d, weight)
-            act = self._q_acts[i - 1]
-            if act == "relu":
-                d = torch.ops.aten.threshold_backward(d, outs[i - 1], 0)
-            elif act == "tanh":
-                d = torch.ops.aten.tanh_backward(d, outs[i - 1])
-            else:
-                with torch.enable_grad():
-                    z = pres[i - 1].detach().requires_grad_()
-                    (d,) = torch.autograd.grad(act(z), z, d)
-        raise AssertionError("unreachable")
 
     def update(
         self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor
@@ -301,20 +239,32 @@ class FusedSACUpdate:
         batch = obs.shape[0]
         reward = reward.reshape(batch)
         terminated = terminated.reshape(batch)
+        acts = self._q_acts
         with torch.no_grad():
             alpha = log_alpha.exp()
-            next_action, next_log_prob = self._sample(next_obs)
-            next_q, _, _ = self._q_forward(
-                self._q_target_linear, torch.cat([next_obs, next_action], -1)
-            )
+            if self._actor is None:
+                next_action, next_log_prob = self._sample(next_obs)
+            else:
+                a_params, a_lin, a_acts, head = self._actor
+                next_out = _mlp_forward(a_lin, a_acts, next_obs)[0][0]
+                next_action, next_log_prob = self._tanh_normal(*head(next_out))
+            next_x = torch.cat([next_obs, next_action], -1)
+            next_q = _mlp_forward(self._q_target_linear, acts, next_x)[0].squeeze(-1)
             next_value = (next_q - alpha * next_log_prob).min(0).values
             target = reward + self.gamma * (~terminated).to(reward.dtype) * next_value
-        new_action, log_prob = self._sample(obs)
+        if self._actor is None:
+            new_action, log_prob = self._sample(obs)
+        else:
+            with torch.no_grad():
+                a_out, a_outs, a_pres = _mlp_forward(a_lin, a_acts, obs)
+            policy_out = a_out[0].detach().requires_grad_()
+            new_action, log_prob = self._tanh_normal(*head(policy_out))
         with torch.no_grad():
             x = torch.cat(
                 [torch.cat([obs, action], -1), torch.cat([obs, new_action.detach()], -1)], 0
             )
-            q, outs, pres = self._q_forward(self._q_linear, x)
+            q, outs, pres = _mlp_forward(self._q_linear, acts, x)
+            q = q.squeeze(-1)
             diff = q[:, :batch] - target
             loss_qvalue = F.smooth_l1_loss(diff, torch.zeros_like(diff), reduction="none")
             loss_qvalue = loss_qvalue.sum(0).mean()
@@ -323,7 +273,9 @@ class FusedSACUpdate:
             grad = torch.zeros_like(q)
             grad[:, :batch] = diff.clamp(-1.0, 1.0).mul_(scale)
             grad[:, batch:].scatter_(0, argmin.unsqueeze(0), -scale)
-            q_grads, action_grad = self._q_backward(x, outs, pres, grad, batch, obs.shape[-1])
+            q_grads, action_grad = _mlp_backward(
+                self._q_linear, acts, x, outs, pres, grad.unsqueeze(-1), batch, obs.shape[-1]
+            )
             log_prob_d = log_prob.detach()
             loss_actor = (alpha * log_prob_d - q_pi).mean()
             loss_alpha = (-log_alpha * (log_prob_d + loss.target_entropy)).mean()
@@ -333,6 +285,13 @@ class FusedSACUpdate:
             [log_prob, new_action],
             [(alpha * scale).expand_as(log_prob), action_grad],
         )
+        if self._actor is not None:
+            with torch.no_grad():
+                a_grads, _ = _mlp_backward(
+                    a_lin, a_acts, obs, a_outs, a_pres, policy_out.grad.unsqueeze(0), batch
+                )
+            for param, g in zip(a_params, a_grads, strict=True):
+                param.grad = g.view_as(param)
         for param, g in zip(self._q_linear, q_grads, strict=True):
             param.grad = g.view_as(param)
         log_alpha.grad = alpha_grad.reshape(log_alpha.shape).to(log_alpha.dtype)
@@ -448,6 +407,108 @@ class ReplaySampler:
         self._seen = filled
         index = torch.randint(0, filled, (self.batch_size,))
         return tuple(leaf.index_select(0, index) for leaf in self._leaves)
+
+
+def _mlp_forward(
+    linear: list[Tensor], acts: list[Any], x: Tensor
+) -> tuple[Tensor, list[Tensor], list[Tensor | None]]:
+    """An ensemble MLP ``[n, N, out]`` on shared inputs ``x`` ``[N, in]``; weights ``[n, o, i]``.
+
+    Also returns the hidden outputs and, for generic activations, their inputs (what
+    :func:`_mlp_backward` needs).
+    """
+    n = linear[0].shape[0]
+    h = x.unsqueeze(0).expand(n, *x.shape)
+    outs: list[Tensor] = []
+    pres: list[Tensor | None] = []
+    for i, act in enumerate(acts):
+        z = torch.baddbmm(linear[2 * i + 1].unsqueeze(1), h, linear[2 * i].transpose(1, 2))
+        if act == "relu":
+            h, pre = z.relu_(), None
+        elif act == "tanh":
+            h, pre = z.tanh_(), None
+        else:
+            h, pre = act(z), z
+        outs.append(h)
+        pres.append(pre)
+    out = torch.baddbmm(linear[-1].unsqueeze(1), h, linear[-2].transpose(1, 2))
+    return out, outs, pres
+
+
+def _mlp_backward(
+    linear: list[Tensor],
+    acts: list[Any],
+    x: Tensor,
+    outs: list[Tensor],
+    pres: list[Tensor | None],
+    d: Tensor,
+    rows: int,
+    skip: int = 0,
+) -> tuple[list[Tensor], Tensor | None]:
+    """Backward of :func:`_mlp_forward` for the output gradient ``d`` ``[n, N, out]``.
+
+    The parameter gradients take the first ``rows`` rows only; the gradient of the inputs past
+    column ``skip``, summed over the members, is returned for the remaining rows (``None``
+    when there are none).
+    """
+    grads: list[Tensor] = list(linear)
+    for i in range(len(acts), -1, -1):
+        weight = linear[2 * i]
+        top = d[:, :rows]
+        grads[2 * i + 1] = top.sum(1)
+        if i == 0:
+            # Both products have a narrow side (the input width, the action width); MKL runs
+            # them several times faster with it as the output's rows.
+            inp = x[:rows].t().expand(weight.shape[0], -1, -1)
+            grads[0] = torch.bmm(inp, top).transpose(1, 2).contiguous()
+            if rows == d.shape[1]:
+                return grads, None
+            part = weight[:, :, skip:].transpose(1, 2)
+            return grads, torch.bmm(part, d[:, rows:].transpose(1, 2)).sum(0).t()
+        grads[2 * i] = torch.bmm(top.transpose(1, 2), outs[i - 1][:, :rows])
+        d = torch.bmm(d, weight)
+        act = acts[i - 1]
+        if act == "relu":
+            d = torch.ops.aten.threshold_backward(d, outs[i - 1], 0)
+        elif act == "tanh":
+            d = torch.ops.aten.tanh_backward(d, outs[i - 1])
+        else:
+            with torch.enable_grad():
+                z = pres[i - 1].detach().requires_grad_()
+                (d,) = torch.autograd.grad(act(z), z, d)
+    raise AssertionError("unreachable")
+
+
+def _split_policy(
+    net: nn.Module,
+) -> tuple[list[Tensor], list[Tensor], list[Any], nn.Module] | None:
+    """``(params, params as [1, ...] views, activations, head)`` of ``Sequential(MLP, head)``.
+
+    ``None`` when ``net`` is not an MLP of biased ``Linear`` layers and one parameter-free
+    activation between them, followed by parameter-free modules.
+    """
+    children = list(net.children()) if isinstance(net, nn.Sequential) else []
+    if not children or not isinstance(children[0], nn.Sequential):
+        return None
+    layers: list[tuple[str, Any]] = []
+    for module in children[0].children():
+        if isinstance(module, nn.Linear) and module.bias is not None:
+            layers.append(("linear", module))
+        elif next(module.parameters(), None) is None:
+            layers.append(("fn", module))
+        else:
+            return None
+    head = nn.Sequential(*children[1:])
+    if any(True for _ in head.parameters()):
+        return None
+    try:
+        acts = _activations(layers)
+    except ValueError:
+        return None
+    params = [t for _, m in layers[::2] for t in (m.weight, m.bias)]
+    with torch.no_grad():
+        linear = [t.unsqueeze(0) for t in params]
+    return params, linear, acts, head
 
 
 _LOG2PI = float(torch.log(torch.tensor(2.0 * torch.pi)))
