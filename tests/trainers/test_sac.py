@@ -212,3 +212,21 @@ def test_replay_sampler_rejects_bad_input():
         ReplaySampler(other, ["observation"])
     with pytest.raises(RuntimeError, match="empty"):
         ReplaySampler(TensorDictReplayBuffer(storage=LazyTensorStorage(10)), ["x"], batch_size=2)()
+
+
+def test_fused_update_autograd_actor_fallback_matches_sacloss(monkeypatch):
+    """An actor the update cannot split into MLP + head goes through autograd, same gradients."""
+    monkeypatch.setattr("torchrl_mbmf.trainers.sac._split_policy", lambda net: None)
+    torch.manual_seed(0)
+    loss, batch = make_test_sac_loss(batch_size=32, hidden=16, activation=torch.nn.ReLU)
+    params = list(loss.parameters())
+    torch.manual_seed(5)
+    out = loss(batch.clone())
+    stock_grads = torch.autograd.grad(
+        out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"], params
+    )
+    fused = FusedSACUpdate(loss, torch.optim.SGD(params, lr=0.0), SoftUpdate(loss, tau=0.1))
+    torch.manual_seed(5)
+    fused.update(*_batch_args(batch))
+    for (name, p), g in zip(loss.named_parameters(), stock_grads, strict=True):
+        torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6, msg=name)

@@ -126,6 +126,15 @@ class FusedSACUpdate:
         # The actor's MLP by hand as well when it is Sequential(MLP, NormalParamExtractor)
         # (autograd then only runs through the head and the TanhNormal sample).
         self._actor = _split_policy(self._policy_net)
+        # With both networks by hand every parameter's gradient is assigned afresh each update;
+        # when the optimiser holds exactly those, its zero_grad (freeing them) can be skipped.
+        assigned = [loss.log_alpha, *self._q_linear]
+        if self._actor is not None:
+            assigned += self._actor[0]
+        held = [p for group in optimizer.param_groups for p in group["params"]]
+        self._assigns_all_grads = self._actor is not None and {id(p) for p in held} == {
+            id(p) for p in assigned
+        }
         # The soft target update as plain in-place lerps when it is a stock SoftUpdate of the
         # Q-networks only (what SoftUpdate.step does, without the tensordict traversal).
         self._lerp_weight: float | None = None
@@ -280,7 +289,8 @@ class FusedSACUpdate:
             loss_actor = (alpha * log_prob_d - q_pi).mean()
             loss_alpha = (-log_alpha * (log_prob_d + loss.target_entropy)).mean()
             alpha_grad = -(log_prob_d + loss.target_entropy).mean()
-        self.optimizer.zero_grad(set_to_none=True)
+        if not self._assigns_all_grads:
+            self.optimizer.zero_grad(set_to_none=True)
         torch.autograd.backward(
             [log_prob, new_action],
             [(alpha * scale).expand_as(log_prob), action_grad],
@@ -466,7 +476,7 @@ def _mlp_backward(
             part = weight[:, :, skip:].transpose(1, 2)
             return grads, torch.bmm(part, d[:, rows:].transpose(1, 2)).sum(0).t()
         grads[2 * i] = torch.bmm(top.transpose(1, 2), outs[i - 1][:, :rows])
-        d = torch.bmm(d, weight)
+        d = d * weight if d.shape[-1] == 1 else torch.bmm(d, weight)
         act = acts[i - 1]
         if act == "relu":
             d = torch.ops.aten.threshold_backward(d, outs[i - 1], 0)
