@@ -12,7 +12,8 @@ with ``Adam(fused=True)``. The variants run alternately in the same process, ``r
 update (``time.thread_time``: on a shared machine it leaves out the time spent waiting for a
 core; wall time is reported too). A same-process GEMM rate gives the FLOP floor of an update.
 
-Writes benchmarks/results/sac_update.json and prints a table.
+Writes benchmarks/results/sac_update.json (sac_update_keep_freed_memory.json with
+--keep-freed-memory, which first calls ``keep_freed_memory()``) and prints a table.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from _common import print_table, write
 from torchrl_mbmf.trainers.sac import (
     FusedSACUpdate,
     ReplaySampler,
+    keep_freed_memory,
     make_test_sac_loss,
     sac_update_step,
 )
@@ -183,8 +185,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--rounds", type=int, default=8, help="alternating rounds (default 8)")
     parser.add_argument("--number", type=int, default=20, help="updates per round (default 20)")
+    parser.add_argument(
+        "--keep-freed-memory",
+        action="store_true",
+        help="call keep_freed_memory() first (process-wide malloc setting; separate JSON)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.keep_freed_memory and not keep_freed_memory():
+        raise SystemExit("keep_freed_memory() could not apply the malloc settings here")
     rate = gemm_rate()
     rows = bench_updates(args.rounds, args.number)
     rows += bench_sampling(args.rounds, 10 * args.number)
@@ -203,7 +212,9 @@ def main() -> None:
         "sibling core still slows the arithmetic), so compare the ratios ('vs stock', 'x floor') "
         "rather than the absolute numbers."
     )
-    path = write("sac_update", rows, {"note": note, "rounds": args.rounds, "number": args.number})
+    name = "sac_update_keep_freed_memory" if args.keep_freed_memory else "sac_update"
+    extra = {"note": note, "rounds": args.rounds, "number": args.number}
+    path = write(name, rows, {**extra, "keep_freed_memory": args.keep_freed_memory})
     print_table(rows)
     print(note)
     print(f"wrote {path}")

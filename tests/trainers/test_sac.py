@@ -230,3 +230,15 @@ def test_fused_update_autograd_actor_fallback_matches_sacloss(monkeypatch):
     fused.update(*_batch_args(batch))
     for (name, p), g in zip(loss.named_parameters(), stock_grads, strict=True):
         torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_keep_freed_memory():
+    import platform
+
+    from torchrl_mbmf.trainers.sac import keep_freed_memory
+
+    applied = keep_freed_memory()
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert applied
+    with pytest.raises(ValueError, match="positive"):
+        keep_freed_memory(0)
