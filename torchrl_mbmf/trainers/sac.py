@@ -62,9 +62,13 @@ class FusedSACUpdate:
     temperature loss on ``log_alpha``) on the very parameters the loss module holds, so the
     optimiser, the soft target update and checkpoints are shared with the stock path. It skips
     the tensordict plumbing and ``vmap`` of the stock loss and evaluates both Q-networks with one
-    :func:`torch.baddbmm` per layer. The random draws follow the stock order (next-state action
-    first, then the current-state action), so with one seed both paths give the same losses and
-    gradients (tested against ``SACLoss``); ``SACLoss`` stays the reference implementation.
+    :func:`torch.baddbmm` per layer. An update (:meth:`update`, or calling the object on a
+    batch) writes the backward of both networks out by hand (autograd only runs through the
+    actor's ``NormalParamExtractor`` head and the TanhNormal sample) and gives every parameter
+    the gradient the stock ``loss_actor + loss_qvalue + loss_alpha`` gives it; :meth:`losses`
+    is the same math through autograd. The random draws follow the stock order (next-state
+    action first, then the current-state action), so with one seed both paths give the same
+    losses and gradients (tested against ``SACLoss``); ``SACLoss`` stays the reference.
 
     Supports the networks of :func:`~torchrl_mbmf.modules.make_sac_actor_critic`: an actor
     ``MLP -> NormalParamExtractor`` with a ``TanhNormal`` (``tanh_loc=False``) and Q-networks
