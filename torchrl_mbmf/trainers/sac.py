@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import Tensor, nn
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
 _LOG2 = float(torch.log(torch.tensor(2.0)))
@@ -61,9 +62,13 @@ class FusedSACUpdate:
     temperature loss on ``log_alpha``) on the very parameters the loss module holds, so the
     optimiser, the soft target update and checkpoints are shared with the stock path. It skips
     the tensordict plumbing and ``vmap`` of the stock loss and evaluates both Q-networks with one
-    :func:`torch.baddbmm` per layer. The random draws follow the stock order (next-state action
-    first, then the current-state action), so with one seed both paths give the same losses and
-    gradients (tested against ``SACLoss``); ``SACLoss`` stays the reference implementation.
+    :func:`torch.baddbmm` per layer. An update (:meth:`update`, or calling the object on a
+    batch) writes the backward of both networks out by hand (autograd only runs through the
+    actor's ``NormalParamExtractor`` head and the TanhNormal sample) and gives every parameter
+    the gradient the stock ``loss_actor + loss_qvalue + loss_alpha`` gives it; :meth:`losses`
+    is the same math through autograd. The random draws follow the stock order (next-state
+    action first, then the current-state action), so with one seed both paths give the same
+    losses and gradients (tested against ``SACLoss``); ``SACLoss`` stays the reference.
 
     Supports the networks of :func:`~torchrl_mbmf.modules.make_sac_actor_critic`: an actor
     ``MLP -> NormalParamExtractor`` with a ``TanhNormal`` (``tanh_loc=False``) and Q-networks
@@ -119,6 +124,31 @@ class FusedSACUpdate:
         self._affine_loc = (high + low) / 2
         self._affine_scale = (high - low) / 2
         self._log_affine = self._affine_scale.abs().log().sum()
+        self._q_linear = [t for t in self._q_params if not callable(t)]
+        self._q_target_linear = [t for t in self._q_target if not callable(t)]
+        self._q_acts = _activations(layers)
+        # The actor's MLP by hand as well when it is Sequential(MLP, NormalParamExtractor)
+        # (autograd then only runs through the head and the TanhNormal sample).
+        self._actor = _split_policy(self._policy_net)
+        # With both networks by hand every parameter's gradient is assigned afresh each update;
+        # when the optimiser holds exactly those, its zero_grad (freeing them) can be skipped.
+        assigned = [loss.log_alpha, *self._q_linear]
+        if self._actor is not None:
+            assigned += self._actor[0]
+        held = [p for group in optimizer.param_groups for p in group["params"]]
+        self._assigns_all_grads = self._actor is not None and {id(p) for p in held} == {
+            id(p) for p in assigned
+        }
+        # The soft target update as plain in-place lerps when it is a stock SoftUpdate of the
+        # Q-networks only (what SoftUpdate.step does, without the tensordict traversal).
+        self._lerp_weight: float | None = None
+        if (
+            type(target_updater) is SoftUpdate
+            and target_updater.loss_module is loss
+            and not getattr(loss, "delay_actor", False)
+            and getattr(loss, "delay_qvalue", True)
+        ):
+            self._lerp_weight = 1.0 - float(target_updater.eps)
 
     # ------------------------------------------------------------------ pieces
     @staticmethod
@@ -139,7 +169,9 @@ class FusedSACUpdate:
 
     def _sample(self, obs: Tensor) -> tuple[Tensor, Tensor]:
         """Reparameterised TanhNormal action and its log-probability."""
-        loc, scale = self._policy_net(obs)
+        return self._tanh_normal(*self._policy_net(obs))
+
+    def _tanh_normal(self, loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
         eps = torch.randn_like(loc)
         pre = loc + scale * eps
         log_prob = (-0.5 * eps.pow(2) - scale.log() - 0.5 * _LOG2PI).sum(-1)
@@ -179,25 +211,318 @@ class FusedSACUpdate:
         loss_alpha = (-loss.log_alpha * (log_prob + loss.target_entropy)).mean()
         return loss_actor, loss_qvalue, loss_alpha, log_prob
 
-    def __call__(self, batch: TensorDictBase) -> dict[str, Tensor]:
-        """One update on a replay-buffer batch (``[B]``); returns the detached losses."""
-        loss_actor, loss_qvalue, loss_alpha, _ = self.losses(
-            batch.get(self.observation_key),
-            batch.get(self.action_key),
-            batch.get(("next", "reward")).squeeze(-1),
-            batch.get(("next", self.observation_key)),
-            batch.get(("next", "terminated")).squeeze(-1),
+    def update(
+        self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor
+    ) -> dict[str, Tensor]:
+        """One update on a batch of tensors: the losses, their gradients, the step, the targets.
+
+        The Q-networks' forward and backward are written out (the current-state Q-values of the
+        replayed and of the new actions share one pass through the online Q-parameters; only
+        the replayed rows give those parameters gradients, the new-action rows only give the
+        action gradient for the actor), the actor's gradient comes from autograd and the
+        temperature's in closed form. The parameters receive the gradients of
+        ``loss_actor + loss_qvalue + loss_alpha`` of the stock loss (tested against
+        ``SACLoss``), then the optimiser steps and the target Q-networks are soft-updated.
+
+        Args:
+            obs: observations ``[B, obs_dim]``.
+            action: actions taken ``[B, action_dim]``.
+            reward: rewards ``[B]`` or ``[B, 1]``.
+            next_obs: next observations ``[B, obs_dim]``.
+            terminated: terminal flags ``[B]`` or ``[B, 1]`` (bool).
+
+        Returns:
+            ``{"loss_actor", "loss_qvalue", "loss_alpha", "alpha"}``: 0-dim detached tensors
+            (no host synchronisation; average them when logging).
+
+        Examples:
+            >>> import torch
+            >>> from torchrl.objectives import SoftUpdate
+            >>> from torchrl_mbmf.trainers.sac import FusedSACUpdate, make_test_sac_loss
+            >>> loss, b = make_test_sac_loss(batch_size=8)
+            >>> optim = torch.optim.Adam(loss.parameters())
+            >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.1))
+            >>> out = step.update(b["observation"], b["action"], b["next", "reward"].squeeze(-1),
+            ...                   b["next", "observation"], b["next", "terminated"].squeeze(-1))
+            >>> out["loss_qvalue"].shape
+            torch.Size([])
+        """
+        loss = self.loss
+        log_alpha = loss.log_alpha
+        batch = obs.shape[0]
+        reward = reward.reshape(batch)
+        terminated = terminated.reshape(batch)
+        acts = self._q_acts
+        with torch.no_grad():
+            alpha = log_alpha.exp()
+            if self._actor is None:
+                next_action, next_log_prob = self._sample(next_obs)
+            else:
+                a_params, a_lin, a_acts, head = self._actor
+                next_out = _mlp_forward(a_lin, a_acts, next_obs)[0][0]
+                next_action, next_log_prob = self._tanh_normal(*head(next_out))
+            next_x = torch.cat([next_obs, next_action], -1)
+            next_q = _mlp_forward(self._q_target_linear, acts, next_x)[0].squeeze(-1)
+            next_value = (next_q - alpha * next_log_prob).min(0).values
+            target = reward + self.gamma * (~terminated).to(reward.dtype) * next_value
+        if self._actor is None:
+            new_action, log_prob = self._sample(obs)
+        else:
+            with torch.no_grad():
+                a_out, a_outs, a_pres = _mlp_forward(a_lin, a_acts, obs)
+            policy_out = a_out[0].detach().requires_grad_()
+            new_action, log_prob = self._tanh_normal(*head(policy_out))
+        with torch.no_grad():
+            x = torch.cat(
+                [torch.cat([obs, action], -1), torch.cat([obs, new_action.detach()], -1)], 0
+            )
+            q, outs, pres = _mlp_forward(self._q_linear, acts, x)
+            q = q.squeeze(-1)
+            diff = q[:, :batch] - target
+            loss_qvalue = F.smooth_l1_loss(diff, torch.zeros_like(diff), reduction="none")
+            loss_qvalue = loss_qvalue.sum(0).mean()
+            q_pi, argmin = q[:, batch:].min(0)
+            scale = 1.0 / batch
+            grad = torch.zeros_like(q)
+            grad[:, :batch] = diff.clamp(-1.0, 1.0).mul_(scale)
+            grad[:, batch:].scatter_(0, argmin.unsqueeze(0), -scale)
+            q_grads, action_grad = _mlp_backward(
+                self._q_linear, acts, x, outs, pres, grad.unsqueeze(-1), batch, obs.shape[-1]
+            )
+            log_prob_d = log_prob.detach()
+            loss_actor = (alpha * log_prob_d - q_pi).mean()
+            loss_alpha = (-log_alpha * (log_prob_d + loss.target_entropy)).mean()
+            alpha_grad = -(log_prob_d + loss.target_entropy).mean()
+        if not self._assigns_all_grads:
+            self.optimizer.zero_grad(set_to_none=True)
+        torch.autograd.backward(
+            [log_prob, new_action],
+            [(alpha * scale).expand_as(log_prob), action_grad],
         )
-        self.optimizer.zero_grad(set_to_none=True)
-        (loss_actor + loss_qvalue + loss_alpha).backward()
+        if self._actor is not None:
+            with torch.no_grad():
+                a_grads, _ = _mlp_backward(
+                    a_lin, a_acts, obs, a_outs, a_pres, policy_out.grad.unsqueeze(0), batch
+                )
+            for param, g in zip(a_params, a_grads, strict=True):
+                param.grad = g.view_as(param)
+        for param, g in zip(self._q_linear, q_grads, strict=True):
+            param.grad = g.view_as(param)
+        log_alpha.grad = alpha_grad.reshape(log_alpha.shape).to(log_alpha.dtype)
         self.optimizer.step()
-        self.target_updater.step()
+        self._target_step()
         return {
-            "loss_actor": loss_actor.detach(),
-            "loss_qvalue": loss_qvalue.detach(),
-            "loss_alpha": loss_alpha.detach(),
-            "alpha": self.loss.log_alpha.detach().exp(),
+            "loss_actor": loss_actor,
+            "loss_qvalue": loss_qvalue,
+            "loss_alpha": loss_alpha,
+            "alpha": log_alpha.detach().exp(),
         }
+
+    def _target_step(self) -> None:
+        if self._lerp_weight is None or not self.target_updater.initialized:
+            self.target_updater.step()
+            return
+        with torch.no_grad():
+            for target, source in zip(self._q_target_linear, self._q_linear, strict=True):
+                target.lerp_(source, self._lerp_weight)
+
+    @property
+    def batch_keys(self) -> tuple[Any, ...]:
+        """The batch entries :meth:`update` takes, in its argument order."""
+        obs, action = self.observation_key, self.action_key
+        obs_next = ("next", *obs) if isinstance(obs, tuple) else ("next", obs)
+        return obs, action, ("next", "reward"), obs_next, ("next", "terminated")
+
+    def __call__(self, batch: TensorDictBase) -> dict[str, Tensor]:
+        """One update on a replay-buffer batch (``[B]``); see :meth:`update`."""
+        return self.update(*(batch.get(key) for key in self.batch_keys))
+
+
+class ReplaySampler:
+    """Draws replay batches as plain tensors, the rows the buffer's own ``sample()`` would draw.
+
+    ``TensorDictReplayBuffer.sample()`` on a ``LazyTensorStorage`` with the stock
+    ``RandomSampler`` draws ``torch.randint(0, len(storage), (batch_size,))`` and gathers the
+    rows through tensordict indexing; this draws the same indices from the same (global) random
+    stream and gathers only the requested entries with :meth:`torch.Tensor.index_select` on
+    views of the storage's preallocated tensors, so a run samples the same rows either way
+    (tested). The buffer keeps owning the data: writes, ``len``, checkpoints
+    (``buffer.storage[:filled]``, ``buffer.writer.state_dict()``) are unchanged. Rows come
+    back as new tensors (the buffer may overwrite its rows later).
+
+    Args:
+        buffer: a ``TensorDictReplayBuffer`` over a ``LazyTensorStorage`` (one-dimensional)
+            with a ``RandomSampler`` (the default).
+        keys: the entries to return, in order (e.g. :attr:`FusedSACUpdate.batch_keys`).
+
+    Keyword Args:
+        batch_size: rows per batch. Defaults to the buffer's batch size.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> from torchrl_mbmf.trainers.sac import ReplaySampler
+        >>> buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+        >>> data = TensorDict({"x": torch.arange(10.0), "next": {"y": torch.ones(10, 2)}}, [10])
+        >>> _ = buffer.extend(data)
+        >>> sampler = ReplaySampler(buffer, ["x", ("next", "y")])
+        >>> x, y = sampler()
+        >>> x.shape, y.shape
+        (torch.Size([4]), torch.Size([4, 2]))
+    """
+
+    def __init__(
+        self,
+        buffer: TensorDictReplayBuffer,
+        keys: Sequence[NestedKey],
+        *,
+        batch_size: int | None = None,
+    ) -> None:
+        if not isinstance(buffer.storage, LazyTensorStorage) or buffer.storage.ndim != 1:
+            raise ValueError(
+                f"ReplaySampler expects a one-dimensional LazyTensorStorage, got {buffer.storage}"
+            )
+        if type(buffer.sampler) is not RandomSampler:
+            raise ValueError(
+                f"ReplaySampler draws what RandomSampler draws, got {type(buffer.sampler).__name__}"
+            )
+        batch_size = buffer.batch_size if batch_size is None else batch_size
+        if batch_size is None or int(batch_size) < 1:
+            raise ValueError(f"ReplaySampler needs a positive batch_size, got {batch_size}")
+        if not keys:
+            raise ValueError("ReplaySampler needs at least one key")
+        self.buffer = buffer
+        self.keys = list(keys)
+        self.batch_size = int(batch_size)
+        self._leaves: list[Tensor] | None = None
+        self._seen = 0
+
+    def refresh(self) -> None:
+        """Looks the storage tensors up again (done automatically when the buffer shrinks)."""
+        storage = self.buffer.storage
+        if len(storage) == 0:
+            raise RuntimeError("ReplaySampler: the replay buffer is empty")
+        first = storage[:1]
+        leaves = []
+        for key in self.keys:
+            row = first.get(key)
+            if not row.is_contiguous():
+                raise ValueError(f"ReplaySampler: storage entry {key!r} is not contiguous")
+            shape = (storage.max_size, *row.shape[1:])
+            leaves.append(row.as_strided(shape, row.stride(), row.storage_offset()))
+        self._leaves = leaves
+
+    def __call__(self) -> tuple[Tensor, ...]:
+        """One batch: a tensor ``[batch_size, ...]`` per key."""
+        filled = len(self.buffer.storage)
+        if self._leaves is None or filled < self._seen:
+            self.refresh()
+        self._seen = filled
+        index = torch.randint(0, filled, (self.batch_size,))
+        return tuple(leaf.index_select(0, index) for leaf in self._leaves)
+
+
+def _mlp_forward(
+    linear: list[Tensor], acts: list[Any], x: Tensor
+) -> tuple[Tensor, list[Tensor], list[Tensor | None]]:
+    """An ensemble MLP ``[n, N, out]`` on shared inputs ``x`` ``[N, in]``; weights ``[n, o, i]``.
+
+    Also returns the hidden outputs and, for generic activations, their inputs (what
+    :func:`_mlp_backward` needs).
+    """
+    n = linear[0].shape[0]
+    h = x.unsqueeze(0).expand(n, *x.shape)
+    outs: list[Tensor] = []
+    pres: list[Tensor | None] = []
+    for i, act in enumerate(acts):
+        z = torch.baddbmm(linear[2 * i + 1].unsqueeze(1), h, linear[2 * i].transpose(1, 2))
+        if act == "relu":
+            h, pre = z.relu_(), None
+        elif act == "tanh":
+            h, pre = z.tanh_(), None
+        else:
+            h, pre = act(z), z
+        outs.append(h)
+        pres.append(pre)
+    out = torch.baddbmm(linear[-1].unsqueeze(1), h, linear[-2].transpose(1, 2))
+    return out, outs, pres
+
+
+def _mlp_backward(
+    linear: list[Tensor],
+    acts: list[Any],
+    x: Tensor,
+    outs: list[Tensor],
+    pres: list[Tensor | None],
+    d: Tensor,
+    rows: int,
+    skip: int = 0,
+) -> tuple[list[Tensor], Tensor | None]:
+    """Backward of :func:`_mlp_forward` for the output gradient ``d`` ``[n, N, out]``.
+
+    The parameter gradients take the first ``rows`` rows only; the gradient of the inputs past
+    column ``skip``, summed over the members, is returned for the remaining rows (``None``
+    when there are none).
+    """
+    grads: list[Tensor] = list(linear)
+    for i in range(len(acts), -1, -1):
+        weight = linear[2 * i]
+        top = d[:, :rows]
+        grads[2 * i + 1] = top.sum(1)
+        if i == 0:
+            # Both products have a narrow side (the input width, the action width); MKL runs
+            # them several times faster with it as the output's rows.
+            inp = x[:rows].t().expand(weight.shape[0], -1, -1)
+            grads[0] = torch.bmm(inp, top).transpose(1, 2).contiguous()
+            if rows == d.shape[1]:
+                return grads, None
+            part = weight[:, :, skip:].transpose(1, 2)
+            return grads, torch.bmm(part, d[:, rows:].transpose(1, 2)).sum(0).t()
+        grads[2 * i] = torch.bmm(top.transpose(1, 2), outs[i - 1][:, :rows])
+        d = d * weight if d.shape[-1] == 1 else torch.bmm(d, weight)
+        act = acts[i - 1]
+        if act == "relu":
+            d = torch.ops.aten.threshold_backward(d, outs[i - 1], 0)
+        elif act == "tanh":
+            d = torch.ops.aten.tanh_backward(d, outs[i - 1])
+        else:
+            with torch.enable_grad():
+                z = pres[i - 1].detach().requires_grad_()
+                (d,) = torch.autograd.grad(act(z), z, d)
+    raise AssertionError("unreachable")
+
+
+def _split_policy(
+    net: nn.Module,
+) -> tuple[list[Tensor], list[Tensor], list[Any], nn.Module] | None:
+    """``(params, params as [1, ...] views, activations, head)`` of ``Sequential(MLP, head)``.
+
+    ``None`` when ``net`` is not an MLP of biased ``Linear`` layers and one parameter-free
+    activation between them, followed by parameter-free modules.
+    """
+    children = list(net.children()) if isinstance(net, nn.Sequential) else []
+    if not children or not isinstance(children[0], nn.Sequential):
+        return None
+    layers: list[tuple[str, Any]] = []
+    for module in children[0].children():
+        if isinstance(module, nn.Linear) and module.bias is not None:
+            layers.append(("linear", module))
+        elif next(module.parameters(), None) is None:
+            layers.append(("fn", module))
+        else:
+            return None
+    head = nn.Sequential(*children[1:])
+    if any(True for _ in head.parameters()):
+        return None
+    try:
+        acts = _activations(layers)
+    except ValueError:
+        return None
+    params = [t for _, m in layers[::2] for t in (m.weight, m.bias)]
+    with torch.no_grad():
+        linear = [t.unsqueeze(0) for t in params]
+    return params, linear, acts, head
 
 
 _LOG2PI = float(torch.log(torch.tensor(2.0 * torch.pi)))
@@ -224,6 +549,26 @@ def _stack(params: TensorDictBase, layers: list[tuple[str, Any]]) -> list[Any]:
         else:
             out.append(key)
     return out
+
+
+def _activations(layers: list[tuple[str, Any]]) -> list[Any]:
+    """The activation between consecutive linear layers: ``"relu"``, ``"tanh"`` or the module."""
+    kinds = [kind for kind, _ in layers]
+    expected = ["linear"] + ["fn", "linear"] * ((len(layers) - 1) // 2)
+    if kinds != expected:
+        raise ValueError(
+            f"FusedSACUpdate expects a Q-network of Linear layers with one activation between "
+            f"consecutive ones, got layers {kinds}"
+        )
+    acts: list[Any] = []
+    for _, module in layers[1::2]:
+        if type(module) is nn.ReLU:
+            acts.append("relu")
+        elif type(module) is nn.Tanh:
+            acts.append("tanh")
+        else:
+            acts.append(module)
+    return acts
 
 
 def _q_layers(qvalue: nn.Module) -> list[tuple[str, Any]]:
@@ -254,8 +599,57 @@ def _action_bounds(actor: nn.Module) -> tuple[Tensor, Tensor]:
     return low, high
 
 
+def keep_freed_memory(mmap_threshold: int = 256 * 2**20, trim_threshold: int = 2**30) -> bool:
+    """Makes glibc's ``malloc`` keep freed memory for reuse instead of unmapping it.
+
+    Eager PyTorch on CPU allocates and frees every intermediate tensor; with glibc's defaults
+    blocks above a (dynamic) threshold are ``mmap``-ed and returned to the system on free, so
+    the next update touches fresh pages and pays a page fault per 4 KiB (about 600 per SAC
+    update at batch 256 with 256-wide networks, a sizeable share of its time on a VM). Raising
+    the mmap and trim thresholds keeps those blocks in the heap. Process-wide and
+    irreversible for the process; it changes no numbers, only where memory comes from (the
+    process keeps up to ``trim_threshold`` bytes of freed memory). Call it once at start-up.
+
+    Args:
+        mmap_threshold: allocations of at least this many bytes are still ``mmap``-ed.
+            Defaults to 256 MiB.
+        trim_threshold: free memory at the top of the heap beyond this is returned to the
+            system. Defaults to 1 GiB.
+
+    Returns:
+        whether the settings were applied (``False`` where the C library is not glibc).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.sac import keep_freed_memory
+        >>> isinstance(keep_freed_memory(), bool)
+        True
+    """
+    if mmap_threshold <= 0 or trim_threshold <= 0:
+        raise ValueError(
+            f"keep_freed_memory: thresholds must be positive, got {mmap_threshold}, "
+            f"{trim_threshold}"
+        )
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc <malloc.h>
+    return bool(mallopt(m_mmap_threshold, int(mmap_threshold))) and bool(
+        mallopt(m_trim_threshold, int(trim_threshold))
+    )
+
+
 def make_test_sac_loss(
-    batch_size: int = 8, obs_dim: int = 3, action_dim: int = 2, hidden: int = 16
+    batch_size: int = 8,
+    obs_dim: int = 3,
+    action_dim: int = 2,
+    hidden: int = 16,
+    activation: type[nn.Module] = nn.Tanh,
 ) -> tuple[SACLoss, TensorDictBase]:
     """A small ``SACLoss`` and a random replay batch, for examples and tests.
 
@@ -264,6 +658,8 @@ def make_test_sac_loss(
         obs_dim: observation size. Defaults to 3.
         action_dim: action size. Defaults to 2.
         hidden: hidden width (two layers). Defaults to 16.
+        activation: hidden activation of both networks. Defaults to :class:`torch.nn.Tanh`
+            (``MLP``'s default; the training networks use :class:`torch.nn.ReLU`).
 
     Returns:
         ``(loss, batch)``.
@@ -280,7 +676,12 @@ def make_test_sac_loss(
 
     spec = Bounded(-2.0, 2.0, (action_dim,))
     net = nn.Sequential(
-        MLP(in_features=obs_dim, out_features=2 * action_dim, num_cells=[hidden, hidden]),
+        MLP(
+            in_features=obs_dim,
+            out_features=2 * action_dim,
+            num_cells=[hidden, hidden],
+            activation_class=activation,
+        ),
         NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
     )
     actor = ProbabilisticActor(
@@ -292,7 +693,12 @@ def make_test_sac_loss(
         return_log_prob=True,
     )
     qvalue = ValueOperator(
-        MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=[hidden, hidden]),
+        MLP(
+            in_features=obs_dim + action_dim,
+            out_features=1,
+            num_cells=[hidden, hidden],
+            activation_class=activation,
+        ),
         in_keys=["observation", "action"],
     )
     loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=spec)
