@@ -52,7 +52,7 @@ from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fi
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
 from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
-from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
+from torchrl_mbmf.trainers.sac import FusedSACUpdate, ReplaySampler, sac_update_step
 
 logger = logging.getLogger(__name__)
 
@@ -323,14 +323,18 @@ class Trainer:
             )
             self.loss.make_value_estimator(gamma=float(c.gamma))
             self.target_updater = SoftUpdate(self.loss, tau=float(c.tau))
-            self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr))
-            if c.update == "fused":
-                self.sac_step = FusedSACUpdate(self.loss, self.optim, self.target_updater)
-            else:
-                self.sac_step = sac_update_step(self.loss, self.optim, self.target_updater)
+            fused = c.update == "fused"
+            # the fused path also uses torch's fused Adam (same update up to float rounding)
+            self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr), fused=fused)
             self.replay = TensorDictReplayBuffer(
                 storage=LazyTensorStorage(int(c.replay_size)), batch_size=int(c.batch_size)
             )
+            self.replay_sampler = None
+            if fused:
+                self.sac_step = FusedSACUpdate(self.loss, self.optim, self.target_updater)
+                self.replay_sampler = ReplaySampler(self.replay, self.sac_step.batch_keys)
+            else:
+                self.sac_step = sac_update_step(self.loss, self.optim, self.target_updater)
 
     def _build_model(self) -> None:
         self.dataset = None
@@ -624,13 +628,16 @@ class Trainer:
         updates = round(past * float(c.utd_ratio))
         if updates <= 0:
             return
-        stats: dict[str, list[float]] = {}
+        stats: dict[str, list[torch.Tensor]] = {}
         for _ in range(updates):
-            out = self.sac_step(self.replay.sample())
+            if self.replay_sampler is not None:
+                out = self.sac_step.update(*self.replay_sampler())
+            else:
+                out = self.sac_step(self.replay.sample())
             for k, v in out.items():
-                stats.setdefault(k, []).append(float(v))
+                stats.setdefault(k, []).append(torch.as_tensor(v).detach())
         self.progress["updates"] += 1
-        self.log({f"loss/{k}": float(np.mean(v)) for k, v in stats.items()})
+        self.log({f"loss/{k}": float(torch.stack(v).float().mean()) for k, v in stats.items()})
         scale = batch.get("scale", None)
         if scale is not None:
             self.log({"train/policy_log_std": float(scale.log().mean())})
