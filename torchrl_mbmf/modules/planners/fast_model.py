@@ -24,6 +24,9 @@ class ModelLayers:
         action_dim: size of the action.
         action_low: lower action clip of the model.
         action_high: upper action clip of the model.
+        last: ``(weight_t, bias)`` of the last layer when it is a plain linear layer (its
+            output is then ``torch.addmm(bias, x, weight_t)`` exactly, which may write into a
+            buffer), else ``None``.
 
     Examples:
         >>> import torch
@@ -39,6 +42,29 @@ class ModelLayers:
     action_dim: int
     action_low: float
     action_high: float
+    last: tuple[torch.Tensor, torch.Tensor] | None = None
+
+
+def addmm_relu(bias: torch.Tensor, x: torch.Tensor, weight_t: torch.Tensor) -> torch.Tensor:
+    """``relu(bias + x @ weight_t)`` as ``addmm`` then an in-place ReLU, in one call if possible.
+
+    Args:
+        bias: ``[out]``.
+        x: ``[N, in]``.
+        weight_t: ``[in, out]`` (the transposed weight of a linear layer).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners.fast_model import addmm_relu
+        >>> addmm_relu(torch.tensor([1.0, -5.0]), torch.ones(1, 2), torch.eye(2))
+        tensor([[2., 0.]])
+    """
+    if _ADDMM_ACTIVATION is not None:
+        return _ADDMM_ACTIVATION(bias, x, weight_t)
+    return torch.addmm(bias, x, weight_t).relu_()
+
+
+_ADDMM_ACTIVATION = getattr(torch, "_addmm_activation", None)  # addmm, then relu_ in place
 
 
 def _packed_linear_available(weight: torch.Tensor) -> bool:
@@ -70,9 +96,12 @@ def _layer_fn(
         except (RuntimeError, TypeError):
             pass
 
-    if type(activation) is nn.ReLU:  # in place on the fresh output: same values, one op less
+    if type(activation) is nn.ReLU:  # in place on the fresh output: same values, fewer ops
+        weight_t = weight.t()
 
         def relu_layer(x: torch.Tensor) -> torch.Tensor:
+            if x.dim() == 2:  # what ``linear`` runs for a 2-d input, then the ReLU
+                return addmm_relu(bias, x, weight_t)
             return nn.functional.linear(x, weight, bias).relu_()
 
         return relu_layer
@@ -195,7 +224,11 @@ class CachedModelStep:
             for w, b, act in zip(weights, biases, activations, strict=True)
         ]
         low, high, d = model.action_low, model.action_high, model.state_dim
-        self._layers = ModelLayers(tuple(fns), d, model.action_dim, low, high)
+        w_last, b_last = weights[-1].detach().contiguous(), biases[-1].detach().contiguous()
+        last_plain = w_last.numel() < self.min_packed_size or not _packed_linear_available(w_last)
+        # the plain layer runs ``linear`` on these same tensors: addmm(b, x, w.t()) for 2-d x
+        last = (w_last.t(), b_last) if last_plain else None
+        self._layers = ModelLayers(tuple(fns), d, model.action_dim, low, high, last)
 
         def step(state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             x = torch.cat([state, action.clamp(low, high)], -1)

@@ -83,7 +83,9 @@ class PolicyRollout:
         if tight is None or folded is None:
             return None
         params, _ = tight
-        layers, d = folded.layers, folded.state_dim
+        layers, d, last = folded.layers, folded.state_dim, folded.last
+        if last is not None:
+            layers = layers[:-1]
         batch = state.shape[:-1]
         n = batch.numel() * num_candidates
         x = state.new_empty(n, d + folded.action_dim)  # [state, action] of every candidate
@@ -93,21 +95,31 @@ class PolicyRollout:
         obs_is_view = obs is None or _shares_memory(obs, x)
         if obs is None:
             obs = s
-        rewards = state.new_empty(n, horizon)
+        bounds = self.sampler.action_range()
+        clip = (
+            bounds is None or not folded.action_low <= bounds[0] <= bounds[1] <= folded.action_high
+        )
+        out = state.new_empty(horizon, n, d + 1)  # every step's [delta, reward]
+        delta = out[:, :, :d]
         first = None
+        sample = self.sampler.sample_params
         for t in range(horizon):
             if t and not obs_is_view:
                 obs = self.observation(s)
-            a = self.sampler.sample_params(*params(obs))
+            sample(*params(obs), out=act)
             if first is None:
-                first = a
-            act.copy_(a)
-            act.clamp_(folded.action_low, folded.action_high)
+                first = act.clone()
+            if clip:
+                act.clamp_(folded.action_low, folded.action_high)
             y = x
             for layer in layers:
                 y = layer(y)
-            s.add_(y[:, :d])
-            rewards[:, t] = y[:, d]
+            if last is None:
+                out[t].copy_(y)
+            else:
+                torch.addmm(last[1], y, last[0], out=out[t])
+            s.add_(delta[t])
+        rewards = out[:, :, d].t().contiguous()
         shape = (*batch, num_candidates)
         return first.view(*shape, -1), rewards.view(*shape, horizon), s.clone().view(*shape, d)
 

@@ -13,6 +13,8 @@ from torch import distributions as D
 from torch import nn
 from torchrl.modules import MLP, IndependentNormal, TanhNormal
 
+from torchrl_mbmf.modules.planners.fast_model import addmm_relu
+
 ParamsFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
@@ -46,10 +48,10 @@ def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
         for kind, a, b in ops:
             if kind == "call":
                 x = a(x)
+            elif kind == "linear_relu":
+                x = addmm_relu(b, x, a)
             else:
                 x = torch.addmm(b, x, a)
-                if kind == "linear_relu":
-                    x.relu_()
         return x
 
     return run
@@ -214,21 +216,32 @@ class ActorSampler:
 
         return params, None
 
-    def sample_params(self, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    def sample_params(
+        self, loc: torch.Tensor, scale: torch.Tensor, out: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """One action per row of ``loc``, drawn as :meth:`sample` draws it (same numbers).
 
-        ``scale`` may be any tensor broadcastable to ``loc``; ``loc`` is not modified.
+        Args:
+            loc: the distribution's location ``[..., action_dim]`` (not modified).
+            scale: its scale, any tensor broadcastable to ``loc``.
+            out: where to write the actions (any strides). Defaults to a new tensor.
         """
-        x = torch.randn_like(loc)
-        x.mul_(scale).add_(loc)
+        # ``normal(loc, scale)`` draws ``randn_like(loc)``, then ``mul_(scale).add_(loc)``
+        x = torch.normal(loc, scale)
         if self.distribution_class is not TanhNormal:
-            return x
-        x.tanh_()
+            return x if out is None else out.copy_(x)
+        x = x.tanh_() if out is None else torch.tanh(x, out=out)
         eps = torch.finfo(x.dtype).resolution
         x.clamp_(-1 + eps, 1 - eps)
         if self._affine:
             x.mul_(self._half.to(x)).add_(self._mid.to(x))
         return x
+
+    def action_range(self) -> tuple[float, float] | None:
+        """Bounds every action of :meth:`sample_params` lies in, or ``None`` (unbounded)."""
+        if self.distribution_class is TanhNormal and not self._affine:
+            return -1.0, 1.0
+        return None
 
     def params(self, observation: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The distribution parameters (``loc``, ``scale``) at ``observation``."""
