@@ -46,7 +46,10 @@ class ModelLayers:
 
 
 def addmm_relu(bias: torch.Tensor, x: torch.Tensor, weight_t: torch.Tensor) -> torch.Tensor:
-    """``relu(bias + x @ weight_t)`` as ``addmm`` then an in-place ReLU, in one call if possible.
+    """``relu(bias + x @ weight_t)``: ``addmm``, then a ReLU in place on its fresh output.
+
+    The same values as ``relu(linear(x, weight, bias))`` for a 2-d ``x``, in two tensor calls
+    (``torch._addmm_activation`` does the same in one call but costs more on CPU).
 
     Args:
         bias: ``[out]``.
@@ -59,12 +62,7 @@ def addmm_relu(bias: torch.Tensor, x: torch.Tensor, weight_t: torch.Tensor) -> t
         >>> addmm_relu(torch.tensor([1.0, -5.0]), torch.ones(1, 2), torch.eye(2))
         tensor([[2., 0.]])
     """
-    if _ADDMM_ACTIVATION is not None:
-        return _ADDMM_ACTIVATION(bias, x, weight_t)
     return torch.addmm(bias, x, weight_t).relu_()
-
-
-_ADDMM_ACTIVATION = getattr(torch, "_addmm_activation", None)  # addmm, then relu_ in place
 
 
 def _packed_linear_available(weight: torch.Tensor) -> bool:

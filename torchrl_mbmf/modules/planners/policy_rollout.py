@@ -100,7 +100,7 @@ class PolicyRollout:
             bounds is None or not folded.action_low <= bounds[0] <= bounds[1] <= folded.action_high
         )
         out = state.new_empty(horizon, n, d + 1)  # every step's [delta, reward]
-        delta = out[:, :, :d]
+        outs, deltas = out.unbind(0), out[:, :, :d].unbind(0)
         first = None
         sample = self.sampler.sample_params
         for t in range(horizon):
@@ -115,10 +115,10 @@ class PolicyRollout:
             for layer in layers:
                 y = layer(y)
             if last is None:
-                out[t].copy_(y)
+                outs[t].copy_(y)
             else:
-                torch.addmm(last[1], y, last[0], out=out[t])
-            s.add_(delta[t])
+                torch.addmm(last[1], y, last[0], out=outs[t])
+            s.add_(deltas[t])
         rewards = out[:, :, d].t().contiguous()
         shape = (*batch, num_candidates)
         return first.view(*shape, -1), rewards.view(*shape, horizon), s.clone().view(*shape, d)
