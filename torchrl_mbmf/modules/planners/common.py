@@ -147,7 +147,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
     other :class:`~torchrl.envs.model_based.ModelBasedEnvBase` goes through ``env.rollout``.
     Both draw the same random numbers in the same order, so they choose the same action
     (``planner.fast_path = False`` forces the generic path). The policy-guided planner runs
-    that loop fused (:class:`~torchrl_mbmf.modules.planners.policy_rollout.PolicyRollout`:
+    that loop fused (:class:`~torchrl_mbmf.modules.planners.PolicyRollout`:
     one ``[state, action]`` buffer, the actor's layers as single ``addmm`` calls, about a
     dozen tensor operations per imagined step), with results equal bit for bit to the
     step-by-step loop, which ``planner.fused_rollout = False`` selects.

@@ -34,6 +34,12 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
     so PPO's importance ratios and advantages are computed for a distribution that is sharper
     than the policy's; only real transitions train the policy.
 
+    With a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` and no refinement, the candidates
+    roll out in one fused tensor loop
+    (:class:`~torchrl_mbmf.modules.planners.PolicyRollout`) whose candidates,
+    returns and chosen action are bit-identical to the step-by-step loop
+    (``planner.fused_rollout = False``), drawing the same random numbers.
+
     Args:
         env: the learned env (a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` takes the fast
             tensor path; any other ``ModelBasedEnvBase`` goes through ``env.rollout``).

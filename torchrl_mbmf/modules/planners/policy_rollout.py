@@ -37,8 +37,7 @@ class PolicyRollout:
         >>> import torch
         >>> from torchrl_mbmf.envs import make_gym_state_env
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel, make_ppo_actor_critic
-        >>> from torchrl_mbmf.modules.planners import ActorSampler, CachedModelStep
-        >>> from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
+        >>> from torchrl_mbmf.modules.planners import ActorSampler, CachedModelStep, PolicyRollout
         >>> actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
         >>> rollout = PolicyRollout(
         ...     CachedModelStep(DeltaDynamicsModel(3, 1, hidden_sizes=(8,))),
