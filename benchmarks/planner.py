@@ -1,20 +1,38 @@
-"""Planner speed: ms per plan, FLOP floor, CEMPlanner reference, PPO-MPC collection frames/s.
+"""Planner speed: ms per 15x10 plan, ours vs the previous implementation vs torchrl's CEMPlanner.
 
-python benchmarks/planner.py               # 2 torch threads -> results/planner.json
-python benchmarks/planner.py --threads 1   # -> results/planner_threads1.json
+python benchmarks/planner.py               # 1 torch thread -> results/planner.json
+python benchmarks/planner.py --threads 2   # -> results/planner_threads2.json
 
-The FLOP floor divides the plan's multiply-add count by the higher of two float32 matmul peaks
-measured in the same run: ``torch.mm`` and the oneDNN linear with pre-packed weights that the
-planner's model step uses (the second is the faster kernel on recent x86 CPUs). The 1-minute
-load average is recorded: on a shared 2-core machine, two torch threads stall badly when other
-processes compete for the cores, so compare runs only at similar load.
+Every planner plans from the same real states on the same thesis-sized model (24-500-500-19)
+and PPO actor (17-64-64-6), in one process, in alternating rounds (A B C A B C ...), so drift
+of a shared machine hits all of them alike; the table gives the median over rounds of the
+ms per plan and the median of the per-round ratios. Rows:
+
+- ``ours``: ``PolicyGuidedMPCPlanner`` with its fused rollout (the default).
+- ``step loop``: the same planner with ``fused_rollout = False`` (the per-step loop it is
+  tested against; bit-identical results).
+- ``previous``: ``PolicyGuidedMPCPlanner`` of the commit ``--previous`` (default: the last one
+  before the fused rollout), imported from git under a private package name. Skipped outside
+  a git checkout.
+- ``torchrl CEMPlanner(optim_steps=1, top_k=1)`` on the same learned env (per state in turn
+  for ``B > 1``: its dims assume an unbatched env).
+
+The FLOP floor divides a plan's multiply-add count by the higher of two float32 matmul peaks
+measured in the same run (``torch.mm`` and oneDNN's linear with pre-packed weights). The
+1-minute load average is recorded: on a shared machine compare runs only at similar load.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import itertools
 import os
+import shutil
+import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,19 +41,14 @@ from torchrl.collectors import Collector
 from torchrl.modules.planners import CEMPlanner
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import itertools
-
 from _common import matmul_peak_gflops, print_table, time_call, write
 
 from torchrl_mbmf.envs import LearnedDynamicsEnv, make_half_cheetah_env
-from torchrl_mbmf.modules import (
-    DeltaDynamicsModel,
-    PolicyGuidedMPCPlanner,
-    RandomShootingMPCPlanner,
-    make_ppo_actor_critic,
-)
+from torchrl_mbmf.modules import DeltaDynamicsModel, PolicyGuidedMPCPlanner, make_ppo_actor_critic
 
 M, H = 15, 10
+PREVIOUS = "1848f94"  # the planner before the fused rollout
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def plan_flops(model: DeltaDynamicsModel, actor_cells=(64, 64), obs_dim=17, act_dim=6) -> int:
@@ -64,6 +77,56 @@ def packed_linear_peak_gflops(size: int = 1024) -> float:
     return 2 * size**3 / sec / 1e9
 
 
+def previous_planner_class(commit: str) -> type | None:
+    """``PolicyGuidedMPCPlanner`` as of ``commit``, imported under a private package name."""
+    names = ("common", "fast_model", "sampling", "policy_guided")
+    package = f"planners_at_{commit}"
+    tmp = Path(tempfile.mkdtemp())
+    try:
+        (tmp / package).mkdir()
+        (tmp / package / "__init__.py").write_text("")
+        for name in names:
+            src = subprocess.run(
+                [
+                    "git",
+                    "-C",
+                    str(ROOT),
+                    "show",
+                    f"{commit}:torchrl_mbmf/modules/planners/{name}.py",
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout
+            src = src.replace("torchrl_mbmf.modules.planners.", f"{package}.")
+            (tmp / package / f"{name}.py").write_text(src)
+        sys.path.insert(0, str(tmp))
+        try:
+            return importlib.import_module(f"{package}.policy_guided").PolicyGuidedMPCPlanner
+        finally:
+            sys.path.remove(str(tmp))
+    except (OSError, subprocess.CalledProcessError) as err:
+        print(f"previous implementation {commit} not available ({err}); skipped")
+        return None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def alternate(calls: dict[str, object], *, rounds: int, number: int) -> dict[str, list[float]]:
+    """Seconds per call of each function, ``rounds`` times in turn (``number`` calls each)."""
+    for fn in calls.values():
+        for _ in range(max(3, number // 4)):
+            fn()
+    times = {name: [] for name in calls}
+    for _ in range(rounds):
+        for name, fn in calls.items():
+            start = time.perf_counter()
+            for _ in range(number):
+                fn()
+            times[name].append((time.perf_counter() - start) / number)
+    return times
+
+
 def collection_fps(num_envs: int, frames: int) -> float:
     real = make_half_cheetah_env(num_envs=num_envs, seed=0)
     actor, _ = make_ppo_actor_critic(real)
@@ -89,7 +152,11 @@ def collection_fps(num_envs: int, frames: int) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--previous", default=PREVIOUS, help="commit of the previous planner")
+    parser.add_argument("--rounds", type=int, default=15, help="alternating rounds")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 2, 4, 8])
+    parser.add_argument("--no-collection", action="store_true", help="skip the Collector rows")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -100,67 +167,72 @@ def main() -> None:
     real = make_half_cheetah_env(seed=0)
     actor, _ = make_ppo_actor_critic(real)
     model = DeltaDynamicsModel(18, 6)
+    data = torch.randn(256, 18)
+    model.fit_normalizer(
+        data, torch.rand(256, 6) * 2 - 1, data + 0.1 * torch.randn(256, 18), torch.randn(256)
+    )
     env = LearnedDynamicsEnv(model, real)
     flops = plan_flops(model)
+    previous_cls = previous_planner_class(args.previous)
+    ours = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=H)
+    step_loop = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=H)
+    step_loop.fused_rollout = False
+    planners: dict[str, object] = {"ours": ours, "step loop": step_loop}
+    if previous_cls is not None:
+        planners[f"previous ({args.previous})"] = previous_cls(
+            env, actor, num_candidates=M, horizon=H
+        )
+    cem = CEMPlanner(env, planning_horizon=H, optim_steps=1, num_candidates=M, top_k=1)
     rows = []
-    for batch in (1, 8):
-        td = make_half_cheetah_env(num_envs=batch, seed=0).reset() if batch > 1 else real.reset()
-        planners = {
-            "PolicyGuidedMPCPlanner": PolicyGuidedMPCPlanner(
-                env, actor, num_candidates=M, horizon=H
-            ),
-            "RandomShootingMPCPlanner": RandomShootingMPCPlanner(env, num_candidates=M, horizon=H),
-            "RandomShootingMPCPlanner(actor)": RandomShootingMPCPlanner(
-                env, num_candidates=M, horizon=H, actor=actor
-            ),
-            "torchrl CEMPlanner(optim_steps=1, top_k=1)": CEMPlanner(
-                env, planning_horizon=H, optim_steps=1, num_candidates=M, top_k=1
-            ),
-        }
-        for name, planner in planners.items():
-            if name.startswith("torchrl") and batch > 1:
-                # CEMPlanner's dims assume an unbatched env spec; plan each state in turn
-                def call(planner=planner, td=td, batch=batch):
-                    for i in range(batch):
-                        planner(td[i].clone())
-            else:
-
-                def call(planner=planner, td=td):
-                    planner(td.clone())
-
-            with torch.no_grad():
-                sec = time_call(call, repeats=5, number=40)
-            floor = batch * flops / (peak * 1e9)
+    for batch in args.batches:
+        real_b = make_half_cheetah_env(num_envs=batch, seed=0) if batch > 1 else real
+        td = real_b.rollout(3)[..., -1] if batch > 1 else real.rollout(3)[-1]
+        calls = {name: (lambda p=p, td=td: p(td)) for name, p in planners.items()}
+        if batch == 1:
+            calls["torchrl CEMPlanner(optim_steps=1)"] = lambda td=td: cem(td)
+        elif batch == max(args.batches):
+            # CEMPlanner's dims assume an unbatched env spec: plan each state in turn
+            parts = [td[i].clone() for i in range(batch)]
+            calls["torchrl CEMPlanner(optim_steps=1)"] = lambda parts=parts: [cem(p) for p in parts]
+        with torch.no_grad():
+            times = alternate(calls, rounds=args.rounds, number=max(5, 40 // batch))
+        ref = next(n for n in times if n.startswith("previous")) if previous_cls else "step loop"
+        floor = batch * flops / (peak * 1e9)
+        for name, sec in times.items():
+            ratio = [r / s for r, s in zip(times[ref], sec, strict=True)]
+            ours_ratio = [s / o for s, o in zip(sec, times["ours"], strict=True)]
             rows.append(
                 {
                     "planner": name,
                     "states": batch,
-                    "ms_per_plan": sec * 1e3,
+                    "ms_per_plan": statistics.median(sec) * 1e3,
+                    "ms_min": min(sec) * 1e3,
+                    f"speedup_vs_{ref.split()[0]}": statistics.median(ratio),
+                    "x_ours": statistics.median(ours_ratio),
                     "floor_ms": floor * 1e3,
-                    "x_floor": sec / floor,
+                    "x_floor": statistics.median(sec) / floor,
                 }
             )
-    fps = {n: collection_fps(n, 1024 if n > 1 else 512) for n in (1, 8)}
-    for n, v in fps.items():
-        rows.append({"planner": f"PPO-MPC Collector, {n} env(s)", "states": n, "frames_per_s": v})
+    if not args.no_collection:
+        for n in (1, 8):
+            fps = collection_fps(n, 1024 if n > 1 else 512)
+            rows.append(
+                {"planner": f"PPO-MPC Collector, {n} env(s)", "states": n, "frames_per_s": fps}
+            )
     load_after = os.getloadavg()[0]
     print(
         f"matmul peak: torch.mm {mm_peak:.1f}, packed oneDNN linear {packed_peak:.1f} GFLOP/s; "
         f"plan cost {flops / 1e6:.1f} MFLOP per state; load average {load_before:.1f} -> "
-        f"{load_after:.1f} on {os.cpu_count()} cores"
+        f"{load_after:.1f} on {os.cpu_count()} cores; {args.rounds} alternating rounds"
     )
     print_table(rows)
-    targets = {
-        "ms_per_plan_1_state": 2.0,
-        "frames_per_s_1_env": 300,
-        "frames_per_s_8_envs": 1500,
-        "prototype_ms_per_plan": [7, 15],
-        "prototype_frames_per_s": 65,
-    }
     path = write(
-        "planner" if args.threads == 2 else f"planner_threads{args.threads}",
+        "planner" if args.threads == 1 else f"planner_threads{args.threads}",
         rows,
         {
+            "command": "python benchmarks/planner.py"
+            + ("" if args.threads == 1 else f" --threads {args.threads}"),
+            "previous_commit": args.previous if previous_cls is not None else None,
             "matmul_peak_gflops": peak,
             "torch_mm_peak_gflops": mm_peak,
             "packed_linear_peak_gflops": packed_peak,
@@ -168,7 +240,8 @@ def main() -> None:
             "plan_mflop_per_state": flops / 1e6,
             "m": M,
             "h": H,
-            "targets": targets,
+            "rounds": args.rounds,
+            "targets": {"ms_per_plan_1_state_1_thread": 1.5},
         },
     )
     print(f"wrote {path}")

@@ -3,12 +3,12 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from tensordict.nn import AddStateIndependentNormalScale, NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
 from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env, make_half_cheetah_env
 from torchrl_mbmf.modules import (
@@ -16,8 +16,9 @@ from torchrl_mbmf.modules import (
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
     make_ppo_actor_critic,
+    make_sac_actor_critic,
 )
-from torchrl_mbmf.modules.planners import CachedModelStep
+from torchrl_mbmf.modules.planners import ActorSampler, CachedModelStep
 
 C = torch.tensor([1.0, -2.0, 0.5, 3.0, -1.0, 2.0])
 
@@ -299,3 +300,109 @@ def test_cached_model_step_matches_model_and_sees_refits():
         torch.testing.assert_close(step()(s, a)[0], model(s, a)[0], rtol=1e-5, atol=1e-5)
         model.fit_normalizer(s, a, s + torch.randn(64, 18), torch.randn(64))
         torch.testing.assert_close(step()(s, a)[1], model(s, a)[1], rtol=1e-5, atol=1e-5)
+
+
+def _fitted_env(real, hidden=(32, 32)):
+    torch.manual_seed(0)
+    model = DeltaDynamicsModel(18, 6, hidden_sizes=hidden)
+    s = torch.randn(200, 18)
+    model.fit_normalizer(s, torch.rand(200, 6) * 2 - 1, s + torch.randn(200, 18), torch.randn(200))
+    return LearnedDynamicsEnv(model, real)
+
+
+@pytest.mark.parametrize("batch", [(), (3,)])
+@pytest.mark.parametrize("kind", ["ppo", "ppo_normal", "sac"])
+def test_fused_rollout_is_bit_identical_to_step_by_step(real, batch, kind):
+    """The fused loop runs the same operations on the same values: equal bit for bit."""
+    torch.manual_seed(1)
+    if kind == "sac":
+        policy, _ = make_sac_actor_critic(real, hidden_sizes=(32, 32))
+    else:
+        dist = "normal" if kind == "ppo_normal" else "tanh_normal"
+        policy, _ = make_ppo_actor_critic(real, distribution=dist, init_log_std=-0.5)
+    # 300 x 300 is above CachedModelStep's packing threshold: the oneDNN layer is covered
+    planner = PolicyGuidedMPCPlanner(_fitted_env(real, (300, 300)), policy, horizon=6)
+    assert planner.policy_rollout is not None and planner.policy_rollout.available()
+    td = real.reset().expand(*batch).clone() if batch else real.reset()
+    td["state"] = td["state"] + torch.randn_like(td["state"])  # distinct real states
+    td["observation"] = td["state"][..., 1:]
+    outs = []
+    for fused in (True, False):
+        planner.fused_rollout = fused
+        torch.manual_seed(7)
+        plan = planner.plan(td.clone())
+        outs.append((plan, planner(td.clone()), torch.rand(())))
+    (p1, o1, r1), (p2, o2, r2) = outs
+    assert torch.equal(p1.first_actions, p2.first_actions)
+    assert torch.equal(p1.returns, p2.returns)
+    assert torch.equal(p1.best, p2.best)
+    assert torch.equal(r1, r2)  # the same number of random draws
+    for key in planner.out_keys:
+        assert torch.equal(o1[key], o2[key]), key
+
+
+def test_fused_rollout_only_for_stock_policy_samples(real, actor):
+    policy, _ = actor
+    env = _fitted_env(real)
+
+    class Uniform(PolicyGuidedMPCPlanner):
+        def sample_candidate_actions(self, observation, step):
+            return torch.rand(*observation.shape[:-1], 6) * 2 - 1
+
+    assert Uniform(env, policy).policy_rollout is None
+    assert PolicyGuidedMPCPlanner(env, policy, refinement="cem").policy_rollout is None
+    assert RandomShootingMPCPlanner(env, actor=policy).policy_rollout is None
+
+
+def test_tight_actor_params_follow_weight_updates(real, actor):
+    policy, _ = make_ppo_actor_critic(real, init_log_std=-0.5)
+    sampler = ActorSampler(policy)
+    obs = torch.randn(15, 17)
+    fn, scale = sampler.tight_params()
+    assert sampler.tight_params()[0] is fn  # cached while nothing changes
+    loc, want_scale = sampler.params(obs)
+    assert torch.equal(fn(obs)[0], loc)
+    assert torch.equal(scale.expand_as(want_scale), want_scale)
+    optim = torch.optim.SGD(policy.parameters(), lr=0.1)
+    dist = policy.get_dist(TensorDict(observation=obs, batch_size=[15]))
+    dist.log_prob(torch.zeros(15, 6)).sum().backward()
+    optim.step()
+    fn, scale = sampler.tight_params()
+    loc, want_scale = sampler.params(obs)
+    assert torch.equal(fn(obs)[0], loc)
+    assert torch.equal(scale.expand_as(want_scale), want_scale)
+    net = policy.module[0].module[0]
+    net[0].weight = nn.Parameter(torch.zeros_like(net[0].weight))  # a replaced tensor
+    assert torch.equal(sampler.tight_params()[0](obs)[0], sampler.params(obs)[0])
+
+
+@pytest.mark.parametrize("bounds", [(-1.0, 1.0), (-2.0, 0.5)])
+def test_closed_form_log_prob_matches_distribution(bounds):
+    torch.manual_seed(0)
+    low, high = torch.full((6,), bounds[0]), torch.full((6,), bounds[1])
+    loc, scale = torch.randn(20, 6), torch.rand(20, 6) + 0.05
+    action = low + (high - low) * torch.rand(20, 6)
+    for cls, kwargs in ((TanhNormal, {"low": low, "high": high}), (IndependentNormal, {})):
+        policy = ProbabilisticActor(
+            TensorDictModule(
+                NormalParamExtractor(), in_keys=["observation"], out_keys=["loc", "scale"]
+            ),
+            in_keys=["loc", "scale"],
+            distribution_class=cls,
+            distribution_kwargs=kwargs,
+        )
+        sampler = ActorSampler(policy)
+        assert sampler.closed_form_log_prob
+        want = cls(loc, scale, **kwargs).log_prob(action)
+        torch.testing.assert_close(sampler.log_prob_params(action, loc, scale), want)
+
+
+def test_cached_model_step_sees_a_replaced_parameter():
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+    step = CachedModelStep(model)
+    s, a = torch.randn(5, 3), torch.randn(5, 1)
+    with torch.no_grad():
+        first = step()
+        model.net[0].weight = nn.Parameter(torch.randn(8, 4))
+        assert step() is not first
+        torch.testing.assert_close(step()(s, a)[0], model(s, a)[0], rtol=1e-5, atol=1e-5)

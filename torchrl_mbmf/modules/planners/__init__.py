@@ -7,8 +7,9 @@ from torchrl_mbmf.modules.planners.common import (
     select_best,
 )
 from torchrl_mbmf.modules.planners.ensemble_guided import EnsemblePlan, EnsemblePolicyGuidedPlanner
-from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
+from torchrl_mbmf.modules.planners.fast_model import CachedModelStep, ModelLayers
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
+from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
 from torchrl_mbmf.modules.planners.random_shooting import RandomShootingMPCPlanner
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
 from torchrl_mbmf.modules.planners.values import MinQValue
@@ -19,8 +20,10 @@ __all__ = [
     "EnsemblePlan",
     "EnsemblePolicyGuidedPlanner",
     "MinQValue",
+    "ModelLayers",
     "Plan",
     "PolicyGuidedMPCPlanner",
+    "PolicyRollout",
     "RandomShootingMPCPlanner",
     "ShootingPlanner",
     "discounted_return",

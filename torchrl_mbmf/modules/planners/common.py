@@ -15,6 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.planners import MPCPlannerBase
 
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
+from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
 
 
@@ -145,7 +146,11 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
     spec checks, no autograd, pre-packed oneDNN weights on CPU); any
     other :class:`~torchrl.envs.model_based.ModelBasedEnvBase` goes through ``env.rollout``.
     Both draw the same random numbers in the same order, so they choose the same action
-    (``planner.fast_path = False`` forces the generic path).
+    (``planner.fast_path = False`` forces the generic path). The policy-guided planner runs
+    that loop fused (:class:`~torchrl_mbmf.modules.planners.PolicyRollout`:
+    one ``[state, action]`` buffer, the actor's layers as single ``addmm`` calls, about a
+    dozen tensor operations per imagined step), with results equal bit for bit to the
+    step-by-step loop, which ``planner.fused_rollout = False`` selects.
 
     When an ``actor`` is given, the planner also writes the actor's distribution parameters
     (``loc``, ``scale``) at the real observation and the log-probability of the chosen action
@@ -235,6 +240,8 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         if actor is not None:
             self.sampler = ActorSampler(actor)
             self._check_actor_size()
+        self.fused_rollout = True
+        self.policy_rollout: PolicyRollout | None = None
         out_keys = [action_key]
         if self.sampler is not None:
             out_keys += [*self.sampler.param_keys, log_prob_key]
@@ -302,7 +309,14 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             entries[self.env.observation_key] = self.env.observation(state)
         return TensorDict(entries, batch_size=state.shape[:-1])
 
-    def _rollout_fast(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, TensorDict]:
+    def _rollout_fast(
+        self, state: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, TensorDict | torch.Tensor]:
+        rollout = self.policy_rollout
+        if self.fused_rollout and rollout is not None and rollout.model_step is self._model_step:
+            out = rollout(state, num_candidates=self.num_candidates, horizon=self.horizon)
+            if out is not None:
+                return out
         predict = self._model_step()
         s = expand_candidates(state, self.num_candidates)
         rewards = s.new_empty(*s.shape[:-1], self.horizon)
@@ -362,8 +376,15 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
                 first, rewards, final = self._rollout_fast(tensordict.get(self.state_key))
             else:
                 first, rewards, final = self._rollout_generic(tensordict)
+            if isinstance(final, torch.Tensor):
+                final = self._final_entries(final) if self._reads_final() else None
             returns = self.score_candidates(rewards, final)
             return Plan(first, returns, select_best(returns))
+
+    def _reads_final(self) -> bool:
+        # the stock score reads the last imagined state only for a terminal value
+        stock = type(self).score_candidates is ShootingPlanner.score_candidates
+        return self.value_module is not None or not stock
 
     def planning(self, td: TensorDictBase) -> torch.Tensor:
         """The action to execute now ``[*B, action_dim]`` (``MPCPlannerBase`` contract)."""

@@ -187,6 +187,7 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
         self.ensemble: EnsembleDeltaDynamicsModel = env.dynamics
         # the base class' step cache, rebuilt for the ensemble; calling it gives the mean
         self._model_step = _CachedFusedEnsemble(env.dynamics)
+        self.policy_rollout = None  # the fused rollout is for one model, not an ensemble
         self._last_plan: EnsemblePlan | None = None
         extra = getattr(env, "disagreement_key", None)
         if extra is not None:  # an output of the learned env, not an input of the planner

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -10,6 +11,58 @@ from torch import nn
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 
 Step = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+@dataclass(frozen=True)
+class ModelLayers:
+    """The world model's layers with the scaling folded in, as plain tensor functions.
+
+    Attributes:
+        layers: ``x -> y`` per linear layer (with its activation); applied in turn to the
+            concatenated ``[state, clipped action]`` they give ``[delta, reward]`` in real units.
+        state_dim: size of the state.
+        action_dim: size of the action.
+        action_low: lower action clip of the model.
+        action_high: upper action clip of the model.
+        last: ``(weight_t, bias)`` of the last layer when it is a plain linear layer (its
+            output is then ``torch.addmm(bias, x, weight_t)`` exactly, which may write into a
+            buffer), else ``None``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+        >>> from torchrl_mbmf.modules.planners import CachedModelStep
+        >>> folded = CachedModelStep(DeltaDynamicsModel(3, 1, hidden_sizes=(8,))).layers()
+        >>> len(folded.layers), folded.state_dim
+        (2, 3)
+    """
+
+    layers: tuple[Callable[[torch.Tensor], torch.Tensor], ...]
+    state_dim: int
+    action_dim: int
+    action_low: float
+    action_high: float
+    last: tuple[torch.Tensor, torch.Tensor] | None = None
+
+
+def addmm_relu(bias: torch.Tensor, x: torch.Tensor, weight_t: torch.Tensor) -> torch.Tensor:
+    """``relu(bias + x @ weight_t)``: ``addmm``, then a ReLU in place on its fresh output.
+
+    The same values as ``relu(linear(x, weight, bias))`` for a 2-d ``x``, in two tensor calls
+    (``torch._addmm_activation`` does the same in one call but costs more on CPU).
+
+    Args:
+        bias: ``[out]``.
+        x: ``[N, in]``.
+        weight_t: ``[in, out]`` (the transposed weight of a linear layer).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners.fast_model import addmm_relu
+        >>> addmm_relu(torch.tensor([1.0, -5.0]), torch.ones(1, 2), torch.eye(2))
+        tensor([[2., 0.]])
+    """
+    return torch.addmm(bias, x, weight_t).relu_()
 
 
 def _packed_linear_available(weight: torch.Tensor) -> bool:
@@ -40,6 +93,16 @@ def _layer_fn(
             return packed_layer
         except (RuntimeError, TypeError):
             pass
+
+    if type(activation) is nn.ReLU:  # in place on the fresh output: same values, fewer ops
+        weight_t = weight.t()
+
+        def relu_layer(x: torch.Tensor) -> torch.Tensor:
+            if x.dim() == 2:  # what ``linear`` runs for a 2-d input, then the ReLU
+                return addmm_relu(bias, x, weight_t)
+            return nn.functional.linear(x, weight, bias).relu_()
+
+        return relu_layer
 
     def layer(x: torch.Tensor) -> torch.Tensor:
         y = nn.functional.linear(x, weight, bias)
@@ -84,14 +147,32 @@ class CachedModelStep:
         self.min_packed_size = int(min_packed_size)
         self._key: tuple[tuple[int, int, int], ...] | None = None
         self._step: Step | None = None
+        self._layers: ModelLayers | None = None
+        self._slots: list[tuple[dict[str, torch.Tensor | None], str]] | None = None
 
     def __getstate__(self) -> dict[str, object]:
         # the built step holds closures and packed weights: rebuild it after a copy or pickle
-        return {**self.__dict__, "_key": None, "_step": None}
+        return {**self.__dict__, "_key": None, "_step": None, "_layers": None, "_slots": None}
 
     def _version_key(self) -> tuple[tuple[int, int, int], ...]:
-        tensors = [*self.model.parameters(), *self.model.buffers()]
-        return tuple((t.data_ptr(), t._version, t.device.index or 0) for t in tensors)
+        # Where each parameter and buffer lives (its module's dict and name) is collected once;
+        # reading the tensors through those slots each call still sees a replaced tensor
+        # (``module.weight = ...``, ``load_state_dict(assign=True)``) as well as in-place
+        # updates (version counter) and ``.data`` swaps (data pointer). Only a change of the
+        # module tree itself would go unseen.
+        if self._slots is None:
+            self._slots = [
+                (slots, name)
+                for module in self.model.modules()
+                for slots in (module._parameters, module._buffers)
+                for name in slots
+            ]
+        key = []
+        for slots, name in self._slots:
+            t = slots[name]
+            if t is not None:
+                key.append((id(t), t._version, t.data_ptr()))
+        return tuple(key)
 
     def __call__(self) -> Step:
         """The step for the model's current weights (rebuilt only after they changed)."""
@@ -100,6 +181,17 @@ class CachedModelStep:
             self._step = self._build()
             self._key = key
         return self._step
+
+    def layers(self) -> ModelLayers | None:
+        """The folded layers of the current weights, or ``None`` for models ``step`` wraps.
+
+        For tight planning loops that keep ``(state, action)`` side by side in one buffer:
+        ``out = x``, then ``out = layer(out)`` for each layer, gives the scaled-back
+        ``[delta, reward]`` exactly as the step computes them (the step only adds the
+        concatenation, the action clip and ``state + delta``).
+        """
+        self()
+        return self._layers
 
     @torch.no_grad()
     def _build(self) -> Step:
@@ -113,6 +205,7 @@ class CachedModelStep:
             or not all(isinstance(m, nn.Linear) for m in linears)
             or any(isinstance(m, nn.Linear) for m in layers[1::2])
         ):
+            self._layers = None
             return model.fused_step()
         weights = [m.weight for m in linears]
         biases = [m.bias for m in linears]
@@ -129,6 +222,11 @@ class CachedModelStep:
             for w, b, act in zip(weights, biases, activations, strict=True)
         ]
         low, high, d = model.action_low, model.action_high, model.state_dim
+        w_last, b_last = weights[-1].detach().contiguous(), biases[-1].detach().contiguous()
+        last_plain = w_last.numel() < self.min_packed_size or not _packed_linear_available(w_last)
+        # the plain layer runs ``linear`` on these same tensors: addmm(b, x, w.t()) for 2-d x
+        last = (w_last.t(), b_last) if last_plain else None
+        self._layers = ModelLayers(tuple(fns), d, model.action_dim, low, high, last)
 
         def step(state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             x = torch.cat([state, action.clamp(low, high)], -1)

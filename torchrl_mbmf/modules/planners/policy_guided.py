@@ -10,6 +10,8 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_mbmf.modules.planners.common import Plan, ShootingPlanner, expand_candidates
+from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
+from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
 
 REFINEMENTS = (None, "cem", "mppi")
 
@@ -31,6 +33,12 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
     in the thesis: the executed action is the best of ``m`` policy samples, not a plain sample,
     so PPO's importance ratios and advantages are computed for a distribution that is sharper
     than the policy's; only real transitions train the policy.
+
+    With a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` and no refinement, the candidates
+    roll out in one fused tensor loop
+    (:class:`~torchrl_mbmf.modules.planners.PolicyRollout`) whose candidates,
+    returns and chosen action are bit-identical to the step-by-step loop
+    (``planner.fused_rollout = False``), drawing the same random numbers.
 
     Args:
         env: the learned env (a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` takes the fast
@@ -139,6 +147,19 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         self.num_policy = round(policy_fraction * num_candidates)
         self.temperature = float(temperature)
         self.min_std = float(min_std)
+        if self.fast_path and refinement is None and self._samples_the_actor():
+            observation = self.env.observation
+            self.policy_rollout = PolicyRollout(self._model_step, self.sampler, observation)
+
+    def _samples_the_actor(self) -> bool:
+        """Whether candidates are the stock policy samples (subclasses may draw otherwise)."""
+        cls = type(self)
+        return (
+            cls.sample_candidate_actions is PolicyGuidedMPCPlanner.sample_candidate_actions
+            and cls.observation_of is ShootingPlanner.observation_of
+            and cls._rollout_fast is ShootingPlanner._rollout_fast
+            and type(self._model_step) is CachedModelStep
+        )
 
     def sample_candidate_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
         """Actions sampled from the actor at each candidate's observation."""

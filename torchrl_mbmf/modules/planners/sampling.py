@@ -2,14 +2,59 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import distributions as D
-from torchrl.modules import IndependentNormal, TanhNormal
+from torch import nn
+from torchrl.modules import MLP, IndependentNormal, TanhNormal
+
+from torchrl_mbmf.modules.planners.fast_model import addmm_relu
+
+ParamsFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def _flat_layers(net: nn.Module) -> list[nn.Module]:
+    """The modules a plain ``Sequential`` (or a non-reshaping torchrl ``MLP``) runs in turn."""
+    plain = type(net) is nn.Sequential or (type(net) is MLP and not net._reshape_out)
+    if not plain:
+        return [net]
+    return [leaf for m in net for leaf in _flat_layers(m)]
+
+
+def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``layers`` run in turn, with each ``Linear`` as one ``addmm`` on live weights.
+
+    Values equal the modules' own: ``nn.Linear`` on a 2-d input is ``addmm(b, x, W.t())`` and
+    a ReLU right after it runs in place on that fresh output. Other modules are called as is.
+    """
+    ops: list[tuple[str, object, object]] = []
+    for m in layers:
+        if type(m) is nn.Linear and m.bias is not None:
+            ops.append(("linear", m.weight.detach().t(), m.bias.detach()))
+        elif type(m) is nn.ReLU and ops and ops[-1][0] == "linear":
+            ops[-1] = ("linear_relu", *ops[-1][1:])
+        else:
+            ops.append(("call", m, None))
+
+    def run(x: torch.Tensor) -> torch.Tensor:
+        if x.dim() != 2:
+            x = x.reshape(-1, x.shape[-1])
+        for kind, a, b in ops:
+            if kind == "call":
+                x = a(x)
+            elif kind == "linear_relu":
+                x = addmm_relu(b, x, a)
+            else:
+                x = torch.addmm(b, x, a)
+        return x
+
+    return run
 
 
 class ActorSampler:
@@ -58,6 +103,10 @@ class ActorSampler:
                 f"the actor must read a single observation key, it reads {sorted(in_keys)}"
             )
         self.observation_key: NestedKey = in_keys.pop()
+        self._net: nn.Module | None = None
+        self._slots: list[tuple[dict[str, torch.Tensor | None], str]] | None = None
+        self._tight: tuple[ParamsFn, torch.Tensor | None] | None = None
+        self._tight_key: tuple[tuple[int, int, int], ...] | None = None
         self._params_fn = self._make_params_fn(params_modules)
         self._fast = self.distribution_class in (TanhNormal, IndependentNormal, D.Normal)
         if self.distribution_class is TanhNormal:
@@ -67,6 +116,25 @@ class ActorSampler:
             self._upscale = self.distribution_kwargs.get("upscale", 5.0)
             self._mid, self._half = (high + low) / 2, (high - low) / 2
             self._affine = bool((high != 1.0).any() or (low != -1.0).any())
+        # log-probs in closed form where the distribution is exactly "Normal, then tanh (and
+        # the affine map to [low, high])" or an independent Normal, as torchrl builds them
+        kwargs = set(self.distribution_kwargs)
+        if self.distribution_class is TanhNormal:
+            self.closed_form_log_prob = kwargs <= {"low", "high", "tanh_loc", "upscale"} and (
+                not self._tanh_loc
+            )
+        else:
+            self.closed_form_log_prob = self.distribution_class is IndependentNormal and not kwargs
+
+    def __getstate__(self) -> dict[str, object]:
+        # closures over the network: rebuilt from the copied actor after a copy or pickle
+        drop = ("_params_fn", "_slots", "_tight", "_tight_key")
+        return {k: v for k, v in self.__dict__.items() if k not in drop}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        self._slots, self._tight, self._tight_key = None, None, None
+        self._params_fn = self._make_params_fn(list(self.actor.module[:-1]))
 
     def _make_params_fn(
         self, modules: list[torch.nn.Module]
@@ -78,6 +146,7 @@ class ActorSampler:
             and isinstance(modules[0].module, torch.nn.Module)
         ):
             net = modules[0].module
+            self._net = net
             return lambda obs: net(obs)
         seq = TensorDictSequential(*modules)
         key = self.observation_key
@@ -87,6 +156,92 @@ class ActorSampler:
             return tuple(td.get(k) for k in self.param_keys)
 
         return params
+
+    def tight_params(self) -> tuple[ParamsFn, torch.Tensor | None] | None:
+        """A tensor-only ``obs [N, d] -> (loc, scale)`` for the current weights, for hot loops.
+
+        Available (else ``None``) when the parameter network is a plain ``Sequential`` (or
+        torchrl ``MLP``) chain: its linear layers become single ``addmm`` calls on the live
+        weights, with the same values as the network itself. When the chain ends with an
+        :class:`~tensordict.nn.AddStateIndependentNormalScale`, the scale does not depend on
+        the observation: it is computed once here and returned as the second element
+        (shape ``[action_dim]``, broadcastable), and the function's ``scale`` is that same
+        tensor. Build it once per plan: it reads the weights live, but the constant scale is
+        a snapshot.
+
+        Returns:
+            ``(params_fn, constant_scale)`` or ``None``.
+        """
+        if self._net is None or not self._fast:
+            return None
+        key = self._version_key()
+        if key != self._tight_key:
+            self._tight = self._build_tight()
+            self._tight_key = key
+        return self._tight
+
+    def _version_key(self) -> tuple[tuple[int, int, int], ...]:
+        # the chain holds the live weights; it is rebuilt when a tensor is replaced or moved,
+        # and when one changes in place (the constant scale is a snapshot)
+        if self._slots is None:
+            self._slots = [
+                (slots, name)
+                for module in self._net.modules()
+                for slots in (module._parameters, module._buffers)
+                for name in slots
+            ]
+        key = []
+        for slots, name in self._slots:
+            t = slots[name]
+            if t is not None:
+                key.append((id(t), t._version, t.data_ptr()))
+        return tuple(key)
+
+    def _build_tight(self) -> tuple[ParamsFn, torch.Tensor | None]:
+        layers = _flat_layers(self._net)
+        head = layers[-1]
+        if type(head) is AddStateIndependentNormalScale and len(head.scale_shape) == 1:
+            body = _chain(layers[:-1])
+            scale = head(head.state_independent_scale.detach())[1]
+
+            def constant_scale(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                return body(obs), scale
+
+            return constant_scale, scale
+        chain = _chain(layers)
+
+        def params(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            loc, scale = chain(obs)
+            return loc, scale
+
+        return params, None
+
+    def sample_params(
+        self, loc: torch.Tensor, scale: torch.Tensor, out: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """One action per row of ``loc``, drawn as :meth:`sample` draws it (same numbers).
+
+        Args:
+            loc: the distribution's location ``[..., action_dim]`` (not modified).
+            scale: its scale, any tensor broadcastable to ``loc``.
+            out: where to write the actions (any strides). Defaults to a new tensor.
+        """
+        x = torch.randn_like(loc)  # (``torch.normal`` is the same draw but slower: it checks std)
+        x.mul_(scale).add_(loc)
+        if self.distribution_class is not TanhNormal:
+            return x if out is None else out.copy_(x)
+        x = x.tanh_() if out is None else torch.tanh(x, out=out)
+        eps = torch.finfo(x.dtype).resolution
+        x.clamp_(-1 + eps, 1 - eps)
+        if self._affine:
+            x.mul_(self._half.to(x)).add_(self._mid.to(x))
+        return x
+
+    def action_range(self) -> tuple[float, float] | None:
+        """Bounds every action of :meth:`sample_params` lies in, or ``None`` (unbounded)."""
+        if self.distribution_class is TanhNormal and not self._affine:
+            return -1.0, 1.0
+        return None
 
     def params(self, observation: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The distribution parameters (``loc``, ``scale``) at ``observation``."""
@@ -145,8 +300,55 @@ class ActorSampler:
         return loc + scale * torch.randn_like(loc)
 
     def log_prob(self, observation: torch.Tensor, action: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Distribution parameters at ``observation`` and the log-prob of ``action`` under them."""
-        params = self._params_fn(observation)
+        """Distribution parameters at ``observation`` and the log-prob of ``action`` under them.
+
+        For :class:`~torchrl.modules.TanhNormal` (without ``tanh_loc``) and
+        :class:`~torchrl.modules.IndependentNormal` the log-prob is computed in closed form,
+        step for step as the distributions compute it (equal to float rounding, without
+        building the distribution objects); other distributions use their ``log_prob``.
+        """
+        params = self._tight_at(observation)
+        if params is None:
+            params = self._params_fn(observation)
         out = dict(zip(self.param_keys, params, strict=True))
-        out["log_prob"] = self.distribution(*params).log_prob(action)
+        if self.closed_form_log_prob:
+            out["log_prob"] = self.log_prob_params(action, *params)
+        else:
+            out["log_prob"] = self.distribution(*params).log_prob(action)
         return out
+
+    def _tight_at(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(loc, scale)`` at ``observation`` (any batch shape) through the tight chain."""
+        tight = self.tight_params()
+        if tight is None:
+            return None
+        fn, constant = tight
+        loc, scale = fn(observation.reshape(-1, observation.shape[-1]))
+        loc = loc.view(*observation.shape[:-1], loc.shape[-1])
+        if constant is not None:
+            return loc, constant.expand_as(loc).contiguous()
+        return loc, scale.reshape(loc.shape)
+
+    def log_prob_params(
+        self, action: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor
+    ) -> torch.Tensor:
+        """Log-prob ``[...]`` of ``action`` under the distribution of ``loc`` and ``scale``.
+
+        Closed form (see :meth:`log_prob`); falls back on the distribution's ``log_prob``.
+        """
+        if not self.closed_form_log_prob:
+            return self.distribution(loc, scale).log_prob(action)
+        log_prob = 0.0
+        y = action
+        if self.distribution_class is TanhNormal:
+            if self._affine:  # the inverse of ``mid + half * x`` and its log-Jacobian
+                half = self._half.to(y)
+                y = (y - self._mid.to(y)) / half
+                log_prob = log_prob - half.abs().log().expand_as(y).sum(-1)
+            lim = 1.0 - torch.finfo(y.dtype).resolution
+            x = y.clamp(-lim, lim).atanh()
+            log_det = 2.0 * (math.log(2.0) - x - nn.functional.softplus(-2.0 * x))
+            log_prob = log_prob - log_det.sum(-1)
+            y = x
+        normal = -((y - loc) ** 2) / (2 * scale**2) - scale.log() - _LOG_SQRT_2PI
+        return log_prob + normal.sum(-1)
