@@ -38,6 +38,8 @@ def _replay_in_gymnasium(actions: np.ndarray, seed: int):
         obs, reward, _, _, info = env.step(a)
         out["reward"].append(reward)
         out["x_velocity"].append(info["x_velocity"])
+        # the head height of the returned state (mj_step leaves geom_xpos one substep behind)
+        mujoco.mj_kinematics(model, data)
         out["head_drop"].append(data.geom("head").xpos[2] - head_z0)
         out["front"].append([data.joint(n).qpos[0] for n in ("fthigh", "fshin", "ffoot")])
         out["obs"].append(obs)
