@@ -50,6 +50,7 @@ from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_trai
 from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
+from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.ppo import ppo_update
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
@@ -418,12 +419,18 @@ class Trainer:
 
     # ------------------------------------------------------------- logging
     def log(self, metrics: dict[str, float], step: int | None = None) -> None:
-        """Logs scalars at the current real-step count."""
+        """Logs scalars at the current real-step count.
+
+        Raises:
+            TrainingDivergedError: if a value is NaN or infinite (nothing of the call is logged).
+        """
+        step = self.progress["real_steps"] if step is None else step
+        values = {name: float(value) for name, value in metrics.items()}
+        check_finite(values, step)
         if self.logger is None:
             return
-        step = self.progress["real_steps"] if step is None else step
-        for name, value in metrics.items():
-            self.logger.log_scalar(name, float(value), step=step)
+        for name, value in values.items():
+            self.logger.log_scalar(name, value, step=step)
 
     def _log_episodes(self, batch: TensorDictBase) -> None:
         done = batch.get(("next", "done"))[..., 0]
@@ -456,7 +463,9 @@ class Trainer:
             for _ in range(int(self.cfg.eval_episodes)):
                 td = self.eval_env.rollout(100_000, self.actor)
                 returns.append(float(td.get(("next", "reward")).sum()))
-        return float(np.mean(returns))
+        mean = float(np.mean(returns))
+        check_finite({"eval/return": mean}, self.progress["real_steps"])
+        return mean
 
     # ---------------------------------------------------------- model part
     def refit_model(self) -> None:
