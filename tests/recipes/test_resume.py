@@ -101,3 +101,32 @@ def test_incompatible_checkpoint_names_the_key(tmp_path):
         proc = _run(run, *cfg, override)
         assert proc.returncode != 0
         assert f"was written with {key}=" in proc.stderr, proc.stderr[-2000:]
+
+
+def test_changed_training_settings_are_refused_and_safe_ones_recorded(tmp_path):
+    run = tmp_path / "run"
+    cfg = ["method=ppo", *TINY, "total_steps=400", "checkpoint.every_steps=160"]
+    assert _run(run, *cfg).returncode == 0
+    written = (run / "config.yaml").read_text()
+    proc = _run(run, *cfg, "ppo.lr=0.01", "ppo.clip_epsilon=0.5")
+    assert proc.returncode != 0
+    # every changed setting is named with both values
+    assert "was written with ppo.lr=0.0003, this run has ppo.lr=0.01" in proc.stderr, proc.stderr[
+        -2000:
+    ]
+    assert "was written with ppo.clip_epsilon=0.2, this run has ppo.clip_epsilon=0.5" in (
+        proc.stderr
+    )
+    # config.yaml still shows what ran
+    assert (run / "config.yaml").read_text() == written
+    # settings that do not change training are accepted, recorded, and shown in config.yaml
+    proc = _run(run, *cfg, "total_steps=800", "eval_every=300", "checkpoint.keep_last=3")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run / "summary.json").read_text())["real_steps"] == 800
+    entries = json.loads((run / "resume_log.json").read_text())
+    changes = entries[-1]["allowed_changes"]
+    assert changes["total_steps"] == {"checkpoint": 400, "now": 800}
+    assert changes["eval_every"] == {"checkpoint": 800, "now": 300}
+    assert changes["checkpoint.keep_last"] == {"checkpoint": 2, "now": 3}
+    assert "total_steps: 800" in (run / "config.yaml").read_text()
+

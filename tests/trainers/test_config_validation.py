@@ -9,7 +9,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from torchrl_mbmf.trainers import ConfigError, validate_train_config
-from torchrl_mbmf.trainers.config import TRAIN_SETTINGS
+from torchrl_mbmf.trainers.config import TRAIN_SETTINGS, flatten_config, resume_changes
 
 CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
 
@@ -93,3 +93,24 @@ def test_valid_edge_values_pass():
     validate_train_config(cfg)
     assert math.isclose(cfg.ppo.gamma, 1.0)
 
+
+def test_resume_changes_split():
+    saved = flatten_config(_compose("env=pendulum"))
+    now = flatten_config(
+        _compose(
+            "env=pendulum",
+            "ppo.lr=0.01",
+            "checkpoint.every_steps=100",
+            "logger.backend=tensorboard",
+            "total_steps=5",
+            "threads=1",
+            "eval_episodes=3",
+            "experiment=exp1_horizon",
+        )
+    )
+    refused, allowed = resume_changes(saved, now)
+    assert set(refused) >= {"ppo.lr", "checkpoint.every_steps", "logger.backend"}
+    assert refused["ppo.lr"] == (3e-4, 0.01)
+    assert {"total_steps", "threads", "eval_episodes", "experiment.name"} <= set(allowed)
+    assert not set(refused) & set(allowed)
+    assert resume_changes(saved, dict(saved)) == ({}, {})

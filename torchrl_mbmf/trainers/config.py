@@ -484,3 +484,64 @@ def variant_tag(planner: Any, world_model: Any | None = None) -> str:
 
 OmegaConf.register_new_resolver("mbmf_variant", variant_tag, replace=True)
 
+
+#: Settings a resumed run may change: they do not change what is trained (the budget, the
+#: progress bar, torch threads, evaluation and checkpoint retention, folder names). Every other
+#: setting is refused on resume, since the checkpoint's weights, optimisers and data were made
+#: with the old value. Not here on purpose: ``checkpoint.every_steps`` (each checkpoint ends the
+#: episode in progress, so moving them changes the data) and ``logger.backend`` (the logs would
+#: be split across backends). Entries ending in ``.`` are prefixes.
+RESUME_SAFE_SETTINGS: tuple[str, ...] = (
+    "total_steps",
+    "progress",
+    "threads",
+    "eval_every",
+    "eval_episodes",
+    "checkpoint.keep_last",
+    "run_dir",
+    "run_name",
+    "budget.name",
+    "experiment.",
+)
+
+
+def resume_changes(
+    saved: Mapping[str, Any], now: Mapping[str, Any]
+) -> tuple[dict[str, tuple[Any, Any]], dict[str, tuple[Any, Any]]]:
+    """Splits the differences of two flattened configs into refused and allowed changes.
+
+    Args:
+        saved: the flattened config the checkpoint was written with.
+        now: the flattened config of the resuming run.
+
+    Returns:
+        ``(refused, allowed)``, each ``{key: (saved value, new value)}``; a key missing on one
+        side has the value ``"<missing>"`` there. ``allowed`` holds the keys of
+        :data:`RESUME_SAFE_SETTINGS`.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.config import resume_changes
+        >>> resume_changes({"ppo.lr": 3e-4, "total_steps": 400},
+        ...                {"ppo.lr": 0.01, "total_steps": 800})
+        ({'ppo.lr': (0.0003, 0.01)}, {'total_steps': (400, 800)})
+    """
+    missing = "<missing>"
+    refused: dict[str, tuple[Any, Any]] = {}
+    allowed: dict[str, tuple[Any, Any]] = {}
+    for key in sorted(set(saved) | set(now)):
+        old, new = saved.get(key, missing), now.get(key, missing)
+        if _same(old, new):
+            continue
+        safe = any(
+            key == s or (s.endswith(".") and key.startswith(s)) for s in RESUME_SAFE_SETTINGS
+        )
+        (allowed if safe else refused)[key] = (old, new)
+    return refused, allowed
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, bool) or isinstance(b, bool):
+        return type(a) is type(b) and a == b
+    return a == b

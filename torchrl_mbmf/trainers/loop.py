@@ -46,12 +46,21 @@ from torchrl_mbmf.modules.planners import (
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
-from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_train_config
+from torchrl_mbmf.trainers.config import (
+    MODEL_BASED,
+    PPO_METHODS,
+    RESUME_SAFE_SETTINGS,
+    ConfigError,
+    flatten_config,
+    resume_changes,
+    validate_train_config,
+)
 from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.ppo import ppo_update
+from torchrl_mbmf.trainers.resume_logs import append_resume_log
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
 logger = logging.getLogger(__name__)
@@ -196,7 +205,9 @@ class Trainer:
     progress is truncated there (GAE bootstraps it like any batch end). This happens in an
     uninterrupted run exactly as in a resumed one, so a run killed and resumed from its latest
     checkpoint ends with the same weights as one that never stopped (on CPU, same thread count).
-    A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint.
+    A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint; it refuses
+    any changed setting outside :data:`~torchrl_mbmf.trainers.config.RESUME_SAFE_SETTINGS`
+    (naming each, with both values), records the allowed ones in ``resume_log.json``.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -240,6 +251,8 @@ class Trainer:
             "next_refit": 0,
             "switch_step": None,
             "fingerprint": _fingerprint(cfg),
+            # the whole resolved config: a resume refuses any change that affects training
+            "config": flatten_config(cfg),
         }
         self._build_agent()
         self._build_model()
@@ -401,19 +414,47 @@ class Trainer:
         if latest is None:
             return False
         expected = dict(self.progress["fingerprint"])
+        config = self.progress["config"]
         # Compare the config first (the progress entry alone), then restore everything.
         self.checkpoint.load(latest, components=["progress"])
-        saved = self.progress["fingerprint"]
-        for key, value in expected.items():
-            if saved.get(key) != value:
-                raise ValueError(
-                    f"checkpoint {latest} was written with {key}={saved.get(key)!r}, this run "
-                    f"has {key}={value!r}; use another run_dir or the original config"
-                )
+        saved = self.progress.get("config")
+        allowed: dict[str, tuple[Any, Any]] = {}
+        if saved is None:  # written before whole configs were saved: the fingerprint only
+            logger.warning("%s predates saved configs: only its fingerprint is compared", latest)
+            refused = {
+                key: (self.progress["fingerprint"].get(key), value)
+                for key, value in expected.items()
+                if self.progress["fingerprint"].get(key) != value
+            }
+        else:
+            refused, allowed = resume_changes(saved, config)
+        if refused:
+            lines = "\n".join(
+                f"  was written with {key}={old!r}, this run has {key}={new!r}"
+                for key, (old, new) in refused.items()
+            )
+            raise ConfigError(
+                f"checkpoint {latest} was written with other settings that change training:\n"
+                f"{lines}\nuse another run_dir or the original config (settings a resume may "
+                f"change: {list(RESUME_SAFE_SETTINGS)})"
+            )
         self.checkpoint.load(latest)
+        self.progress["config"] = config
+        self.progress["fingerprint"] = expected
         threshold = self.progress.get("disagreement_threshold")
         if threshold is not None and self.planner is not None:
             self.planner.disagreement_threshold = float(threshold)
+        append_resume_log(
+            self.run_dir,
+            {
+                "event": "resume",
+                "checkpoint": latest.name,
+                "real_steps": self.progress["real_steps"],
+                "allowed_changes": {
+                    key: {"checkpoint": old, "now": new} for key, (old, new) in allowed.items()
+                },
+            },
+        )
         logger.info("resumed from %s at %d real steps", latest, self.progress["real_steps"])
         return True
 
