@@ -29,7 +29,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
 from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate
 from torchrl.objectives.value import GAE
-from torchrl.record.loggers import get_logger
+from torchrl.record.loggers import CSVLogger, get_logger
 from tqdm.auto import tqdm
 
 from torchrl_mbmf.data.transitions import TransitionDataset
@@ -60,7 +60,7 @@ from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold,
 from torchrl_mbmf.trainers.export import save_policy
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.ppo import ppo_update
-from torchrl_mbmf.trainers.resume_logs import append_resume_log
+from torchrl_mbmf.trainers.resume_logs import append_resume_log, cut_csv_logs
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
 logger = logging.getLogger(__name__)
@@ -207,7 +207,9 @@ class Trainer:
     checkpoint ends with the same weights as one that never stopped (on CPU, same thread count).
     A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint; it refuses
     any changed setting outside :data:`~torchrl_mbmf.trainers.config.RESUME_SAFE_SETTINGS`
-    (naming each, with both values), records the allowed ones in ``resume_log.json``.
+    (naming each, with both values), records the allowed ones in ``resume_log.json`` and cuts
+    the CSV logs back to the checkpoint (removes them when there is none), so the logs of a
+    killed-and-resumed run equal an uninterrupted run's.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -412,6 +414,10 @@ class Trainer:
     def _maybe_resume(self) -> bool:
         latest = self.rotation.latest()
         if latest is None:
+            # A run killed before its first checkpoint starts again: its rows go.
+            removed = self._cut_logs({})
+            if removed:
+                append_resume_log(self.run_dir, {"event": "restart", "removed_rows": removed})
             return False
         expected = dict(self.progress["fingerprint"])
         config = self.progress["config"]
@@ -444,6 +450,7 @@ class Trainer:
         threshold = self.progress.get("disagreement_threshold")
         if threshold is not None and self.planner is not None:
             self.planner.disagreement_threshold = float(threshold)
+        cut = self._cut_logs(self.logger.experiment.scalars) if self._csv_logs() else {}
         append_resume_log(
             self.run_dir,
             {
@@ -453,10 +460,22 @@ class Trainer:
                 "allowed_changes": {
                     key: {"checkpoint": old, "now": new} for key, (old, new) in allowed.items()
                 },
+                "removed_rows": cut,
             },
         )
         logger.info("resumed from %s at %d real steps", latest, self.progress["real_steps"])
         return True
+
+    def _csv_logs(self) -> bool:
+        return isinstance(self.logger, CSVLogger)
+
+    def _cut_logs(self, rows: dict[str, Any]) -> dict[str, int]:
+        """Cuts the CSV series back to ``rows`` (see :func:`cut_csv_logs`)."""
+        if not self._csv_logs():
+            if self.logger is not None:
+                logger.warning("logs of backend %s are not cut on resume", self.cfg.logger.backend)
+            return {}
+        return cut_csv_logs(Path(self.logger.experiment.log_dir) / "scalars", rows)
 
     # ------------------------------------------------------------- logging
     def log(self, metrics: dict[str, float], step: int | None = None) -> None:
