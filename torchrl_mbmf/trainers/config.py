@@ -224,10 +224,30 @@ TRAIN_SETTINGS: dict[str, Setting] = {
 }
 #: Subtrees whose keys are not fixed (see :data:`TRAIN_SETTINGS`).
 FREE_FORM: tuple[str, ...] = ("experiment",)
+#: Top-level nodes that are not train settings: Hydra's own (present when a config is composed
+#: with ``return_hydra_config=True``); they are neither checked nor compared on resume.
+NOT_SETTINGS: tuple[str, ...] = ("hydra",)
+
+
+def _resolved(cfg: Any) -> dict[str, Any]:
+    """``cfg`` as plain, resolved containers, without :data:`NOT_SETTINGS`."""
+    if not isinstance(cfg, DictConfig):
+        return {k: v for k, v in cfg.items() if k not in NOT_SETTINGS}
+    out: dict[str, Any] = {}
+    for key in cfg:
+        if key in NOT_SETTINGS:
+            continue
+        value = cfg[key]
+        if isinstance(value, DictConfig | ListConfig):
+            value = OmegaConf.to_container(value, resolve=True)
+        out[key] = value
+    return out
 
 
 def flatten_config(cfg: Any, prefix: str = "") -> dict[str, Any]:
     """Flattens a (resolved) config into ``{"a.b.c": value}``; lists and empty dicts are leaves.
+
+    Hydra's own node (``hydra``, see :data:`NOT_SETTINGS`) is left out of a ``DictConfig``.
 
     Args:
         cfg: a ``DictConfig`` or a nested mapping.
@@ -242,7 +262,7 @@ def flatten_config(cfg: Any, prefix: str = "") -> dict[str, Any]:
         {'ppo.lr': 0.0003, 'ppo.hidden_sizes': [64, 64], 'kw': {}}
     """
     if isinstance(cfg, DictConfig):
-        cfg = OmegaConf.to_container(cfg, resolve=True)
+        cfg = _resolved(cfg)
     flat: dict[str, Any] = {}
     for key, value in cfg.items():
         name = f"{prefix}{key}"
@@ -255,7 +275,7 @@ def flatten_config(cfg: Any, prefix: str = "") -> dict[str, Any]:
 
 def _check_settings(cfg: Any) -> None:
     """Unknown keys, missing keys, types and ranges of every setting (see TRAIN_SETTINGS)."""
-    tree = cfg if not isinstance(cfg, DictConfig) else OmegaConf.to_container(cfg, resolve=True)
+    tree = _resolved(cfg)
     kwargs_node = tree.get("reward", {}).get("kwargs")
     flat = flatten_config({k: v for k, v in tree.items() if k not in FREE_FORM})
     flat = {k: v for k, v in flat.items() if not k.startswith("reward.kwargs.")}
