@@ -450,7 +450,7 @@ class Trainer:
         threshold = self.progress.get("disagreement_threshold")
         if threshold is not None and self.planner is not None:
             self.planner.disagreement_threshold = float(threshold)
-        cut = self._cut_logs(self.logger.experiment.scalars) if self._csv_logs() else {}
+        cut = self._cut_logs(self.logger.experiment.scalars if self._csv_logs() else {})
         append_resume_log(
             self.run_dir,
             {
@@ -472,7 +472,7 @@ class Trainer:
     def _cut_logs(self, rows: dict[str, Any]) -> dict[str, int]:
         """Cuts the CSV series back to ``rows`` (see :func:`cut_csv_logs`)."""
         if not self._csv_logs():
-            if self.logger is not None:
+            if self.logger is not None and self.rotation.latest() is not None:
                 logger.warning("logs of backend %s are not cut on resume", self.cfg.logger.backend)
             return {}
         return cut_csv_logs(Path(self.logger.experiment.log_dir) / "scalars", rows)
