@@ -38,6 +38,8 @@ def _replay_in_gymnasium(actions: np.ndarray, seed: int):
         obs, reward, _, _, info = env.step(a)
         out["reward"].append(reward)
         out["x_velocity"].append(info["x_velocity"])
+        # the head height of the returned state (mj_step leaves geom_xpos one substep behind)
+        mujoco.mj_kinematics(model, data)
         out["head_drop"].append(data.geom("head").xpos[2] - head_z0)
         out["front"].append([data.joint(n).qpos[0] for n in ("fthigh", "fshin", "ffoot")])
         out["obs"].append(obs)
@@ -177,3 +179,21 @@ def test_physics_info_reference_height_matches_model():
     assert wrapped.reference_head_height == pytest.approx(0.8)
     with pytest.raises(ValueError, match="joint"):
         PhysicsInfo(env, joints=("nope",))
+
+
+@pytest.mark.parametrize(
+    ("cls", "kwargs", "message"),
+    [
+        (HeadPenReward, {"threshold": float("nan")}, "threshold must be a finite number, got nan"),
+        (HeadPenReward, {"threshold": "low"}, "threshold must be a finite number, got 'low'"),
+        (HeadPenReward, {"penalty_weight": -0.1}, "penalty_weight must be a number >= 0"),
+        (HeadPenReward, {"forward_weight": float("inf")}, "forward_weight must be a finite"),
+        (DefaultReward, {"ctrl_cost_weight": float("nan")}, "ctrl_cost_weight must be a number"),
+        (ShinPenReward, {"thresholds": (0.2, float("nan"), 0.0)}, r"thresholds\[1\] must be"),
+        (ShinPenReward, {"penalty_weights": (0.1, -1.0, 0.1)}, r"penalty_weights\[1\] must be"),
+        (ShinPenReward, {"joint_indices": (3, 4, -1)}, r"joint_indices\[2\] must be"),
+    ],
+)
+def test_reward_constructors_check_their_arguments(cls, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        cls(**kwargs)

@@ -59,3 +59,10 @@ def test_errors(env):
         make_ppo_actor_critic(env, distribution="beta")
     with pytest.raises(KeyError, match="'pixels'"):
         make_ppo_actor_critic(env, observation_key="pixels")
+
+
+@pytest.mark.parametrize("make", [make_ppo_actor_critic, make_sac_actor_critic])
+def test_hidden_sizes_are_checked(make):
+    env = make_half_cheetah_env("default")
+    with pytest.raises(ValueError, match=r"hidden_sizes must be a sequence of integers >= 1"):
+        make(env, hidden_sizes=(0,))

@@ -102,3 +102,9 @@ def test_as_tensordict_module_any_batch():
     assert out["next", "state"].shape == (2, 15, 5)
     assert out["reward"].shape == (2, 15, 1)
     torch.testing.assert_close(out["next", "state"], model(td["state"], td["action"])[0])
+
+
+@pytest.mark.parametrize("hidden", [(0,), (64, -1), (32.5,), (True,)])
+def test_hidden_sizes_are_checked(hidden):
+    with pytest.raises(ValueError, match=r"hidden_sizes must be a sequence of integers >= 1"):
+        DeltaDynamicsModel(3, 1, hidden_sizes=hidden)

@@ -627,3 +627,8 @@ def test_planner_in_a_collector_on_pendulum():
     torch.testing.assert_close(
         actor.get_dist(batch).log_prob(batch["action"]), batch["action_log_prob"]
     )
+
+
+def test_ensemble_hidden_sizes_are_checked():
+    with pytest.raises(ValueError, match=r"hidden_sizes must be a sequence of integers >= 1"):
+        EnsembleDeltaDynamicsModel(3, 1, num_members=2, hidden_sizes=(0,))

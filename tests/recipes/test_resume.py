@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -101,3 +102,109 @@ def test_incompatible_checkpoint_names_the_key(tmp_path):
         proc = _run(run, *cfg, override)
         assert proc.returncode != 0
         assert f"was written with {key}=" in proc.stderr, proc.stderr[-2000:]
+
+
+def test_changed_training_settings_are_refused_and_safe_ones_recorded(tmp_path):
+    run = tmp_path / "run"
+    cfg = ["method=ppo", *TINY, "total_steps=400", "checkpoint.every_steps=160"]
+    assert _run(run, *cfg).returncode == 0
+    written = (run / "config.yaml").read_text()
+    proc = _run(run, *cfg, "ppo.lr=0.01", "ppo.clip_epsilon=0.5")
+    assert proc.returncode != 0
+    # every changed setting is named with both values
+    assert "was written with ppo.lr=0.0003, this run has ppo.lr=0.01" in proc.stderr, proc.stderr[
+        -2000:
+    ]
+    assert "was written with ppo.clip_epsilon=0.2, this run has ppo.clip_epsilon=0.5" in (
+        proc.stderr
+    )
+    # config.yaml still shows what ran
+    assert (run / "config.yaml").read_text() == written
+    # settings that do not change training are accepted, recorded, and shown in config.yaml
+    proc = _run(run, *cfg, "total_steps=800", "eval_every=300", "checkpoint.keep_last=3")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run / "summary.json").read_text())["real_steps"] == 800
+    entries = json.loads((run / "resume_log.json").read_text())
+    changes = entries[-1]["allowed_changes"]
+    assert changes["total_steps"] == {"checkpoint": 400, "now": 800}
+    assert changes["eval_every"] == {"checkpoint": 800, "now": 300}
+    assert changes["checkpoint.keep_last"] == {"checkpoint": 2, "now": 3}
+    assert "total_steps: 800" in (run / "config.yaml").read_text()
+
+
+# Checkpoints at 460 (the first after the 300 random steps and one planning batch), 620 (where
+# the planning phase ends: train/switch_to_model_free is logged at 620 *after* that save), 940,
+# 1260, 1580 and 1600.
+LOG_CFG = ["method=ppo_mpc", *TINY, "checkpoint.every_steps=310"]
+
+
+def _csv_logs(run_dir: Path) -> dict[str, list[str]]:
+    root = run_dir / "logs" / "scalars"
+    out = {}
+    for path in sorted(root.rglob("*.csv")):
+        name = str(path.relative_to(root))
+        rows = path.read_text().splitlines()
+        if name.startswith("time/"):  # wall-clock values: compare the steps only
+            rows = [row.split(",")[0] for row in rows]
+        out[name] = rows
+    return out
+
+
+@pytest.fixture(scope="module")
+def straight_logs(tmp_path_factory):
+    run = tmp_path_factory.mktemp("straight") / "run"
+    proc = _run(run, *LOG_CFG)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return _csv_logs(run)
+
+
+def _rows_after(run_dir: Path, step: int) -> bool:
+    path = run_dir / "logs" / "scalars" / "loss" / "loss_objective.csv"
+    if not path.exists():
+        return False
+    return any(int(row.split(",")[0]) > step for row in path.read_text().split())
+
+
+def _kill_when(run_dir: Path, ready, *overrides: str) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, TRAIN, *overrides, f"run_dir={run_dir}"],
+        cwd=run_dir.parent,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=ENV,
+    )
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None and not ready():
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (run_dir / "summary.json").exists(), "the run finished before it could be killed"
+
+
+def _checkpoint(run_dir: Path, step: int) -> Path:
+    return run_dir / "checkpoints" / f"checkpoint-{step:012d}"
+
+
+@pytest.mark.parametrize(
+    "kill", ["before_first_checkpoint", "after_checkpoint", "during_checkpoint_write"]
+)
+def test_logs_after_sigkill_and_resume_equal_uninterrupted_run(tmp_path, straight_logs, kill):
+    run = tmp_path / "run"
+    if kill == "before_first_checkpoint":
+        val_loss = run / "logs" / "scalars" / "model" / "val_loss.csv"
+        _kill_when(run, val_loss.exists, *LOG_CFG)
+        assert not any((run / "checkpoints").glob("checkpoint-*")), "killed too late"
+    else:
+        # rows beyond the checkpoint at 620, including the one logged at 620 after its save
+        _kill_when(run, lambda: _checkpoint(run, 620).exists() and _rows_after(run, 620), *LOG_CFG)
+        if kill == "during_checkpoint_write":
+            # as if the kill came while the checkpoint at 620 was written: it never appeared
+            shutil.rmtree(_checkpoint(run, 620))
+            assert _checkpoint(run, 460).exists()
+    assert _csv_logs(run) != straight_logs  # the killed attempt left rows to cut
+    done = _run(run, *LOG_CFG)
+    assert done.returncode == 0, done.stderr[-3000:]
+    resumed = _csv_logs(run)
+    assert sorted(resumed) == sorted(straight_logs)
+    for name, rows in straight_logs.items():
+        assert resumed[name] == rows, name

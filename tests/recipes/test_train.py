@@ -140,8 +140,8 @@ def test_half_cheetah_ppo_mpc_tiny(tmp_path):
     [
         (["method=dqn"], "method='dqn' is not a method; allowed"),
         (["reward=default", "reward.name=bogus"], "reward.name='bogus'"),
-        (["planner.horizon=0"], "planner.horizon must be a number >= 1"),
-        (["planner.num_candidates=0"], "planner.num_candidates must be a number >= 1"),
+        (["planner.horizon=0"], "planner.horizon must be an integer >= 1"),
+        (["planner.num_candidates=0"], "planner.num_candidates must be an integer >= 1"),
         (["total_steps=100000", "planning_updates=200"], "beyond total_steps=100000"),
         (["env.num_envs=3"], "multiple of env.num_envs=3"),
         (["logger.backend=foo"], "logger.backend='foo'"),
@@ -149,7 +149,7 @@ def test_half_cheetah_ppo_mpc_tiny(tmp_path):
         (["ppo.update=jit"], "ppo.update='jit' is not supported; allowed"),
         (["collector=multi"], "collector='multi' is not supported; allowed"),
         (["method=mpc", "world_model.random_steps=0"], "world_model.random_steps must be"),
-        (["total_steps=0"], "total_steps must be a number >= 1, got 0"),
+        (["total_steps=0"], "total_steps must be an integer >= 1, got 0"),
         (["planner.refinement=icem"], "planner.refinement='icem' is not supported; allowed"),
         (["method=mpc", "planner.refinement=cem"], "needs method ppo_mpc or sac_mpc"),
         (["planner.refinement=cem", "planner.num_elites=16"], "planner.num_elites must be"),
@@ -186,7 +186,7 @@ def test_variants_get_their_own_run_folders():
 def test_bad_config_subprocess_message(tmp_path):
     proc = _run(tmp_path / "bad", "planner.horizon=0")
     assert proc.returncode != 0
-    assert "planner.horizon must be a number >= 1, got 0" in proc.stderr
+    assert "planner.horizon must be an integer >= 1, got 0" in proc.stderr
     assert not (tmp_path / "bad" / "checkpoints").exists()
 
 

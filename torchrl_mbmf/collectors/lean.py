@@ -281,7 +281,8 @@ class LeanCollector:
         """Steps until the first episode end (or ``max_steps``) and returns those steps.
 
         With a fresh collector this is ``env.rollout(max_steps, policy)`` on the seeded env
-        (tested equal); the collector's frame count is not advanced.
+        (tested equal): the env is not reset after the episode's end (the next collection
+        resets it). The collector's frame count is not advanced.
 
         Args:
             max_steps: the most steps. Defaults to ``100_000``.
@@ -307,6 +308,8 @@ class LeanCollector:
         n = self.frames_per_batch if n is None else int(n)
         clock = time.perf_counter
         t0 = clock()
+        if self._current is None:
+            self._current = self._reset()
         obs, info = self._current
         root_obs = np.empty((n, obs.shape[0]))
         next_obs = np.empty((n, obs.shape[0]))
@@ -321,6 +324,7 @@ class LeanCollector:
         actions: list[torch.Tensor] = []
         outputs: list[Any] = []
         act_s = 0.0
+        ended = False
         sampler = self._sampler
         observation = lay.observation.observation
         with torch.no_grad(), set_exploration_type(self.exploration_type):
@@ -355,11 +359,11 @@ class LeanCollector:
                 truncated[t] = trunc
                 self._count += 1
                 if term or trunc:
-                    obs, info = self._reset()
-                    if stop_at_done:
-                        n = t + 1
+                    if stop_at_done:  # as env.rollout: no reset after the episode's end
+                        n, ended = t + 1, True
                         break
-        self._current = (obs, info)
+                    obs, info = self._reset()
+        self._current = None if ended else (obs, info)
         if n < rewards.shape[0]:
             root_obs, next_obs, rewards = root_obs[:n], next_obs[:n], rewards[:n]
             root_info, next_info = [v[:n] for v in root_info], [v[:n] for v in next_info]

@@ -59,7 +59,9 @@ class PhysicsInfo(gym.Wrapper):
     The thesis' HeadPen and ShinPen rewards and its gait analysis need physics that the
     observation does not carry (the head is a geom of the torso, its height is not observed).
     This wrapper reads them from ``env.unwrapped.data`` after every ``reset`` and ``step`` and
-    writes float64 arrays into ``info``:
+    writes float64 arrays into ``info``, all of them of the state the call returns (after a
+    step, MuJoCo's kinematics are recomputed first: ``mj_step`` leaves them at the pose before
+    its last substep):
 
     - ``forward_velocity`` (1,): the env's own ``info["x_velocity"]`` (0 at reset);
     - ``head_height`` (1,): world z of the ``head`` geom minus its z in the model's reference
@@ -117,10 +119,15 @@ class PhysicsInfo(gym.Wrapper):
         """World z of the head geom in the model's reference pose (m)."""
         return self._head_z0
 
-    def _physics(self, info: dict[str, Any]) -> dict[str, Any]:
+    def _physics(self, info: dict[str, Any], *, stepped: bool = False) -> dict[str, Any]:
         data = self.unwrapped.data
         info[FORWARD_VELOCITY_KEY] = np.array([float(info.get("x_velocity", 0.0))])
         if self._head_id is not None:
+            if stepped:
+                # After mj_step, geom_xpos still holds the pose before the last integration
+                # substep; recompute the kinematics (positions only: cheap, and mj_step redoes
+                # them from qpos anyway, so the dynamics are unchanged).
+                mujoco.mj_kinematics(self.unwrapped.model, data)
             info[HEAD_HEIGHT_KEY] = np.array([data.geom_xpos[self._head_id, 2] - self._head_z0])
         info[JOINT_ANGLES_KEY] = data.qpos[self._qpos_idx].copy()
         info[JOINT_VELOCITIES_KEY] = data.qvel[self._qvel_idx].copy()
@@ -135,4 +142,4 @@ class PhysicsInfo(gym.Wrapper):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         """Steps the wrapped env and adds the physics entries to ``info``."""
         obs, reward, terminated, truncated, info = self.env.step(action)
-        return obs, reward, terminated, truncated, self._physics(dict(info))
+        return obs, reward, terminated, truncated, self._physics(dict(info), stepped=True)

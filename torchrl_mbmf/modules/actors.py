@@ -17,6 +17,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
 from torchrl_mbmf.envs.keys import OBSERVATION_KEY
+from torchrl_mbmf.modules.dynamics import check_hidden_sizes
 
 Distribution = Literal["tanh_normal", "normal"]
 
@@ -86,6 +87,7 @@ def make_ppo_actor_critic(
         >>> [k in td.keys() for k in ("action", "action_log_prob", "loc", "scale", "state_value")]
         [True, True, True, True, True]
     """
+    hidden_sizes = check_hidden_sizes(hidden_sizes)
     obs_dim, action_spec = _dims(env, observation_key, action_key)
     action_dim = action_spec.shape[-1]
     net = MLP(
@@ -166,6 +168,7 @@ def make_sac_actor_critic(
         >>> qvalue(actor(env.reset()))["state_action_value"].shape
         torch.Size([1])
     """
+    hidden_sizes = check_hidden_sizes(hidden_sizes)
     obs_dim, action_spec = _dims(env, observation_key, action_key)
     action_dim = action_spec.shape[-1]
     net = nn.Sequential(

@@ -12,6 +12,39 @@ from torch import nn
 _MIN_SCALE = 1e-6
 
 
+def check_hidden_sizes(hidden_sizes: Sequence[int], name: str = "hidden_sizes") -> tuple[int, ...]:
+    """Checks hidden layer widths: a sequence (possibly empty) of integers >= 1.
+
+    A width of 0 builds a layer whose output is always 0; a float or a bool is a typo.
+
+    Args:
+        hidden_sizes: the widths.
+        name: the argument's name in the error message. Defaults to ``"hidden_sizes"``.
+
+    Returns:
+        The widths as a tuple of ints.
+
+    Raises:
+        ValueError: naming the argument and the value.
+
+    Examples:
+        >>> from torchrl_mbmf.modules.dynamics import check_hidden_sizes
+        >>> check_hidden_sizes([64, 64])
+        (64, 64)
+        >>> try:
+        ...     check_hidden_sizes((0,))
+        ... except ValueError as err:
+        ...     print(err)
+        hidden_sizes must be a sequence of integers >= 1, got (0,)
+    """
+    ok = isinstance(hidden_sizes, Sequence) and not isinstance(hidden_sizes, str)
+    if ok:
+        ok = all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in hidden_sizes)
+    if not ok:
+        raise ValueError(f"{name} must be a sequence of integers >= 1, got {hidden_sizes!r}")
+    return tuple(int(h) for h in hidden_sizes)
+
+
 class DeltaDynamicsModel(nn.Module):
     """Deterministic MLP world model predicting the standard-scaled state delta and reward.
 
@@ -68,7 +101,7 @@ class DeltaDynamicsModel(nn.Module):
             raise ValueError(f"action_low={action_low} must be < action_high={action_high}")
         self.state_dim = int(state_dim)
         self.action_dim = int(action_dim)
-        self.hidden_sizes = tuple(int(h) for h in hidden_sizes)
+        self.hidden_sizes = check_hidden_sizes(hidden_sizes)
         self.action_low = float(action_low)
         self.action_high = float(action_high)
         layers: list[nn.Module] = []

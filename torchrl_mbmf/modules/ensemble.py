@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import nn
 
-from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel, check_hidden_sizes
 
 
 class EnsembleLinear(nn.Module):
@@ -158,9 +158,7 @@ class EnsembleDeltaDynamicsModel(DeltaDynamicsModel):
     ) -> None:
         if isinstance(num_members, bool) or not isinstance(num_members, int) or num_members < 1:
             raise ValueError(f"num_members must be an integer >= 1, got {num_members!r}")
-        hidden = tuple(int(h) for h in hidden_sizes)
-        if any(h < 1 for h in hidden):
-            raise ValueError(f"hidden_sizes must all be >= 1, got {tuple(hidden_sizes)}")
+        hidden = check_hidden_sizes(hidden_sizes)
         if not min_log_var < max_log_var:
             raise ValueError(f"min_log_var={min_log_var} must be < max_log_var={max_log_var}")
         # The parent builds the scaling buffers; its single MLP is replaced by the stacked

@@ -7,6 +7,7 @@ from torchrl_mbmf.trainers.ensemble_fit import (
     fit_ensemble,
 )
 from torchrl_mbmf.trainers.export import load_policy, save_policy
+from torchrl_mbmf.trainers.guards import TrainingDivergedError
 from torchrl_mbmf.trainers.loop import Trainer, seed_everything
 from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
@@ -20,6 +21,7 @@ __all__ = [
     "FusedPPOUpdate",
     "FusedSACUpdate",
     "Trainer",
+    "TrainingDivergedError",
     "calibrate_disagreement_threshold",
     "fit_dynamics",
     "fit_dynamics_kwargs",

@@ -29,7 +29,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
 from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate
 from torchrl.objectives.value import GAE
-from torchrl.record.loggers import get_logger
+from torchrl.record.loggers import CSVLogger, get_logger
 from tqdm.auto import tqdm
 
 from torchrl_mbmf.collectors import LeanCollector
@@ -47,11 +47,21 @@ from torchrl_mbmf.modules.planners import (
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
-from torchrl_mbmf.trainers.config import MODEL_BASED, PPO_METHODS, validate_train_config
+from torchrl_mbmf.trainers.config import (
+    MODEL_BASED,
+    PPO_METHODS,
+    RESUME_SAFE_SETTINGS,
+    ConfigError,
+    flatten_config,
+    resume_changes,
+    validate_train_config,
+)
 from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
+from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
+from torchrl_mbmf.trainers.resume_logs import append_resume_log, cut_csv_logs
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, ReplaySampler, sac_update_step
 
 logger = logging.getLogger(__name__)
@@ -196,7 +206,11 @@ class Trainer:
     progress is truncated there (GAE bootstraps it like any batch end). This happens in an
     uninterrupted run exactly as in a resumed one, so a run killed and resumed from its latest
     checkpoint ends with the same weights as one that never stopped (on CPU, same thread count).
-    A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint.
+    A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint; it refuses
+    any changed setting outside :data:`~torchrl_mbmf.trainers.config.RESUME_SAFE_SETTINGS`
+    (naming each, with both values), records the allowed ones in ``resume_log.json`` and cuts
+    the CSV logs back to the checkpoint (removes them when there is none), so the logs of a
+    killed-and-resumed run equal an uninterrupted run's.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -244,6 +258,8 @@ class Trainer:
             "next_refit": 0,
             "switch_step": None,
             "fingerprint": _fingerprint(cfg),
+            # the whole resolved config: a resume refuses any change that affects training
+            "config": flatten_config(cfg),
         }
         self._build_agent()
         self._build_model()
@@ -418,32 +434,83 @@ class Trainer:
     def _maybe_resume(self) -> bool:
         latest = self.rotation.latest()
         if latest is None:
+            # A run killed before its first checkpoint starts again: its rows go.
+            removed = self._cut_logs({})
+            if removed:
+                append_resume_log(self.run_dir, {"event": "restart", "removed_rows": removed})
             return False
         expected = dict(self.progress["fingerprint"])
+        config = self.progress["config"]
         # Compare the config first (the progress entry alone), then restore everything.
         self.checkpoint.load(latest, components=["progress"])
-        saved = self.progress["fingerprint"]
-        for key, value in expected.items():
-            if saved.get(key) != value:
-                raise ValueError(
-                    f"checkpoint {latest} was written with {key}={saved.get(key)!r}, this run "
-                    f"has {key}={value!r}; use another run_dir or the original config"
-                )
+        saved = self.progress.get("config")
+        allowed: dict[str, tuple[Any, Any]] = {}
+        if saved is None:  # written before whole configs were saved: the fingerprint only
+            logger.warning("%s predates saved configs: only its fingerprint is compared", latest)
+            refused = {
+                key: (self.progress["fingerprint"].get(key), value)
+                for key, value in expected.items()
+                if self.progress["fingerprint"].get(key) != value
+            }
+        else:
+            refused, allowed = resume_changes(saved, config)
+        if refused:
+            lines = "\n".join(
+                f"  was written with {key}={old!r}, this run has {key}={new!r}"
+                for key, (old, new) in refused.items()
+            )
+            raise ConfigError(
+                f"checkpoint {latest} was written with other settings that change training:\n"
+                f"{lines}\nuse another run_dir or the original config (settings a resume may "
+                f"change: {list(RESUME_SAFE_SETTINGS)})"
+            )
         self.checkpoint.load(latest)
+        self.progress["config"] = config
+        self.progress["fingerprint"] = expected
         threshold = self.progress.get("disagreement_threshold")
         if threshold is not None and self.planner is not None:
             self.planner.disagreement_threshold = float(threshold)
+        cut = self._cut_logs(self.logger.experiment.scalars if self._csv_logs() else {})
+        append_resume_log(
+            self.run_dir,
+            {
+                "event": "resume",
+                "checkpoint": latest.name,
+                "real_steps": self.progress["real_steps"],
+                "allowed_changes": {
+                    key: {"checkpoint": old, "now": new} for key, (old, new) in allowed.items()
+                },
+                "removed_rows": cut,
+            },
+        )
         logger.info("resumed from %s at %d real steps", latest, self.progress["real_steps"])
         return True
 
+    def _csv_logs(self) -> bool:
+        return isinstance(self.logger, CSVLogger)
+
+    def _cut_logs(self, rows: dict[str, Any]) -> dict[str, int]:
+        """Cuts the CSV series back to ``rows`` (see :func:`cut_csv_logs`)."""
+        if not self._csv_logs():
+            if self.logger is not None and self.rotation.latest() is not None:
+                logger.warning("logs of backend %s are not cut on resume", self.cfg.logger.backend)
+            return {}
+        return cut_csv_logs(Path(self.logger.experiment.log_dir) / "scalars", rows)
+
     # ------------------------------------------------------------- logging
     def log(self, metrics: dict[str, float], step: int | None = None) -> None:
-        """Logs scalars at the current real-step count."""
+        """Logs scalars at the current real-step count.
+
+        Raises:
+            TrainingDivergedError: if a value is NaN or infinite (nothing of the call is logged).
+        """
+        step = self.progress["real_steps"] if step is None else step
+        values = {name: float(value) for name, value in metrics.items()}
+        check_finite(values, step)
         if self.logger is None:
             return
-        step = self.progress["real_steps"] if step is None else step
-        for name, value in metrics.items():
-            self.logger.log_scalar(name, float(value), step=step)
+        for name, value in values.items():
+            self.logger.log_scalar(name, value, step=step)
 
     def _log_episodes(self, batch: TensorDictBase) -> None:
         done = batch.get(("next", "done"))[..., 0]
@@ -485,7 +552,9 @@ class Trainer:
                 else:
                     td = self.eval_env.rollout(100_000, self.actor)
                 returns.append(float(td.get(("next", "reward")).sum()))
-        return float(np.mean(returns))
+        mean = float(np.mean(returns))
+        check_finite({"eval/return": mean}, self.progress["real_steps"])
+        return mean
 
     # ---------------------------------------------------------- model part
     def refit_model(self) -> None:

@@ -8,6 +8,7 @@ info reader) from the ``"next"`` tensordict, so they work on a live env (``Trans
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -17,6 +18,15 @@ from torchrl.data import TensorSpec
 from torchrl.envs.transforms import Transform
 
 from torchrl_mbmf.envs.keys import FORWARD_VELOCITY_KEY, HEAD_HEIGHT_KEY, JOINT_ANGLES_KEY
+
+
+def _finite(value: object, name: str, *, minimum: float | None = None) -> float:
+    """``value`` as a float, refusing non-numbers, NaN/Inf and values below ``minimum``."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not number or not math.isfinite(value) or (minimum is not None and value < minimum):
+        expected = "a finite number" if minimum is None else f"a number >= {minimum:g}"
+        raise ValueError(f"{name} must be {expected}, got {value!r}")
+    return float(value)
 
 
 class ForwardPenaltyReward(Transform):
@@ -53,7 +63,7 @@ class ForwardPenaltyReward(Transform):
         root_keys: Sequence[NestedKey] = (),
     ) -> None:
         super().__init__(in_keys=[velocity_key, *extra_next_keys], out_keys=[reward_key])
-        self.forward_weight = float(forward_weight)
+        self.forward_weight = _finite(forward_weight, "forward_weight")
         self.velocity_key = velocity_key
         self.reward_key = reward_key
         self._root_keys = tuple(root_keys)
@@ -151,7 +161,7 @@ class DefaultReward(ForwardPenaltyReward):
             reward_key=reward_key,
             root_keys=(action_key,),
         )
-        self.ctrl_cost_weight = float(ctrl_cost_weight)
+        self.ctrl_cost_weight = _finite(ctrl_cost_weight, "ctrl_cost_weight", minimum=0)
         self.action_key = action_key
 
     def penalty(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> torch.Tensor:
@@ -214,8 +224,8 @@ class HeadPenReward(ForwardPenaltyReward):
             reward_key=reward_key,
             extra_next_keys=(head_height_key,),
         )
-        self.threshold = float(threshold)
-        self.penalty_weight = float(penalty_weight)
+        self.threshold = _finite(threshold, "threshold")
+        self.penalty_weight = _finite(penalty_weight, "penalty_weight", minimum=0)
         self.head_height_key = head_height_key
 
     def penalty(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> torch.Tensor:
@@ -286,8 +296,13 @@ class ShinPenReward(ForwardPenaltyReward):
             reward_key=reward_key,
             extra_next_keys=(joint_angles_key,),
         )
-        self.thresholds = tuple(float(t) for t in thresholds)
-        self.penalty_weights = tuple(float(w) for w in penalty_weights)
+        self.thresholds = tuple(_finite(t, f"thresholds[{i}]") for i, t in enumerate(thresholds))
+        self.penalty_weights = tuple(
+            _finite(w, f"penalty_weights[{i}]", minimum=0) for i, w in enumerate(penalty_weights)
+        )
+        for i, j in enumerate(joint_indices):
+            if isinstance(j, bool) or not isinstance(j, int) or j < 0:
+                raise ValueError(f"joint_indices[{i}] must be an integer >= 0, got {j!r}")
         self.joint_indices = tuple(int(i) for i in joint_indices)
         self.joint_angles_key = joint_angles_key
         self.register_buffer(

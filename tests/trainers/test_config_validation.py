@@ -1,0 +1,116 @@
+"""Every train setting is type- and range-checked, and unknown keys are refused, before any work."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from torchrl_mbmf.trainers import ConfigError, validate_train_config
+from torchrl_mbmf.trainers.config import TRAIN_SETTINGS, flatten_config, resume_changes
+
+CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(CONFIGS, version_base="1.3"):
+        return compose("train", overrides=list(overrides))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["ppo.gamma=5"], "ppo.gamma must be a number in (0, 1], got 5"),
+        (["sac.gamma=0"], "sac.gamma must be a number in (0, 1], got 0"),
+        (["eval_episodes=0"], "eval_episodes must be an integer >= 1, got 0"),
+        (["sac.utd_ratio=-1"], "sac.utd_ratio must be a number > 0, got -1"),
+        (["sac.init_random_frames=-5"], "sac.init_random_frames must be an integer >= 0, got -5"),
+        (["seed=-1"], "seed must be an integer in [0, 4294967295], got -1"),
+        (["ppo.lr=abc"], "ppo.lr must be a number > 0, got 'abc'"),
+        (["ppo.lr=nan"], "ppo.lr must be a number > 0, got nan"),
+        (["ppo.clip_epsilon=inf"], "ppo.clip_epsilon must be a number in (0, 1], got inf"),
+        (["ppo.hidden_sizes=[0]"], "ppo.hidden_sizes must be a list of integers >= 1, got [0]"),
+        (["world_model.hidden_sizes=[64,-1]"], "world_model.hidden_sizes must be a list"),
+        (["sac.hidden_sizes=64"], "sac.hidden_sizes must be a list of integers >= 1, got 64"),
+        (["planner.horizon=2.5"], "planner.horizon must be an integer >= 1, got 2.5"),
+        (["ppo.epochs=true"], "ppo.epochs must be an integer >= 1, got True"),
+        (["progress=yes"], "progress must be true or false, got 'yes'"),
+        (["threads=0"], "threads must be null or an integer >= 1, got 0"),
+        (["ppo.distribution=beta"], "ppo.distribution='beta' is not supported; allowed"),
+        (["ppo.lmbda=1.5"], "ppo.lmbda must be a number in [0, 1], got 1.5"),
+        (["sac.tau=0"], "sac.tau must be a number in (0, 1], got 0"),
+        (["world_model.val_fraction=1"], "world_model.val_fraction must be a number in (0, 1)"),
+        (["world_model.lr=-1e-4"], "world_model.lr must be a number > 0"),
+        (["planning_updates=-1"], "planning_updates must be an integer >= 0, got -1"),
+        (["checkpoint.keep_last=0"], "checkpoint.keep_last must be an integer >= 1, got 0"),
+        (["ppo.entropy_coeff=-1"], "ppo.entropy_coeff must be a number >= 0, got -1"),
+        (["ppo.init_log_std=nan"], "ppo.init_log_std must be a finite number, got nan"),
+        # unknown keys, anywhere in the tree, are named (with the setting probably meant)
+        (["+planer.horizon=5"], "planer.horizon is not a setting of the train config"),
+        (["+ppo.learning_rate=1e-3"], "ppo.learning_rate is not a setting of the train config"),
+        (["+total_step=10"], "total_step is not a setting of the train config"),
+        (["+reward.kwargs.treshold=-0.3"], "reward.kwargs.treshold is not a parameter of"),
+        (
+            ["reward=head_pen", "reward.kwargs.threshold=nan"],
+            "reward.kwargs: threshold must be a finite number, got nan",
+        ),
+    ],
+)
+def test_bad_setting_names_key_and_value(overrides, message):
+    cfg = _compose(*overrides)
+    escaped = message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
+    with pytest.raises(ConfigError, match=escaped.replace("]", r"\]")):
+        validate_train_config(cfg)
+
+
+def test_unknown_key_suggests_the_close_setting():
+    with pytest.raises(ConfigError, match=r"did you mean 'planner\.horizon'"):
+        validate_train_config(_compose("+planer.horizon=5"))
+
+
+def test_every_composed_setting_has_a_check():
+    """The schema covers every key of every shipped config group (no drift either way)."""
+    groups = ("env", "reward", "world_model", "planner", "logger", "experiment", "budget")
+    root = Path(CONFIGS)
+    for group in groups:
+        for path in sorted((root / group).glob("*.yaml")):
+            validate_train_config(_compose(f"{group}={path.stem}"))
+    keys = set(TRAIN_SETTINGS)
+    assert {"ppo.gamma", "sac.utd_ratio", "seed", "eval_episodes"} <= keys
+
+
+def test_valid_edge_values_pass():
+    cfg = _compose(
+        "ppo.gamma=1",
+        "sac.init_random_frames=0",
+        "threads=2",
+        "planning_updates=0",
+        "world_model.hidden_sizes=[]",
+        "ppo.lr=1",
+    )
+    validate_train_config(cfg)
+    assert math.isclose(cfg.ppo.gamma, 1.0)
+
+
+def test_resume_changes_split():
+    saved = flatten_config(_compose("env=pendulum"))
+    now = flatten_config(
+        _compose(
+            "env=pendulum",
+            "ppo.lr=0.01",
+            "checkpoint.every_steps=100",
+            "logger.backend=tensorboard",
+            "total_steps=5",
+            "threads=1",
+            "eval_episodes=3",
+            "experiment=exp1_horizon",
+        )
+    )
+    refused, allowed = resume_changes(saved, now)
+    assert set(refused) >= {"ppo.lr", "checkpoint.every_steps", "logger.backend"}
+    assert refused["ppo.lr"] == (3e-4, 0.01)
+    assert {"total_steps", "threads", "eval_episodes", "experiment.name"} <= set(allowed)
+    assert not set(refused) & set(allowed)
+    assert resume_changes(saved, dict(saved)) == ({}, {})
