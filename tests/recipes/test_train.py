@@ -68,6 +68,7 @@ def test_every_config_composes(group):
         ("ppo", []),
         ("ppo", ["ppo.update=stock", "collector=stock"]),
         ("ppo", ["ppo.update=fused_autograd"]),
+        ("sac_mpc", ["device=auto"]),  # the GPU where torch sees one
         ("mpc", []),
         ("ppo_mpc", ["env.num_envs=2", "checkpoint.every_steps=100000", "total_steps=1100"]),
         ("sac", ["sac.update=stock"]),
@@ -148,6 +149,7 @@ def test_half_cheetah_ppo_mpc_tiny(tmp_path):
         (["sac.update=jit"], "sac.update='jit' is not supported; allowed"),
         (["ppo.update=jit"], "ppo.update='jit' is not supported; allowed"),
         (["collector=multi"], "collector='multi' is not supported; allowed"),
+        (["device=gpu"], "device='gpu' is not supported; allowed"),
         (["method=mpc", "world_model.random_steps=0"], "world_model.random_steps must be"),
         (["total_steps=0"], "total_steps must be an integer >= 1, got 0"),
         (["planner.refinement=icem"], "planner.refinement='icem' is not supported; allowed"),

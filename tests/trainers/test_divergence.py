@@ -52,7 +52,7 @@ def test_diverged_update_stops_the_run(tmp_path, monkeypatch):
         return stats
 
     monkeypatch.setattr(loop, "ppo_update", diverging)
-    trainer = _trainer(tmp_path)
+    trainer = _trainer(tmp_path, "ppo.update=stock")  # the path that calls ppo_update
     with pytest.raises(TrainingDivergedError, match=r"loss/loss_objective=nan at real step 320"):
         trainer.train()
     assert not (tmp_path / "run" / "summary.json").exists()

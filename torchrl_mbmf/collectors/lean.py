@@ -163,6 +163,9 @@ class LeanCollector:
         exploration_type: the exploration mode the policy runs under. Defaults to
             ``ExplorationType.RANDOM`` (the stock collector's default); another mode calls the
             policy through its tensordict interface at every step.
+        policy_device: where the policy's parameters live (for example a GPU): its inputs
+            are moved there and its outputs back to the CPU, where the env and the batches
+            stay. Defaults to ``None`` (the CPU).
 
     Raises:
         ValueError: if the env is not of a supported layout, or for a non-positive
@@ -188,6 +191,7 @@ class LeanCollector:
         frames_per_batch: int,
         total_frames: int = -1,
         exploration_type: ExplorationType = ExplorationType.RANDOM,
+        policy_device: torch.device | str | None = None,
     ) -> None:
         if isinstance(frames_per_batch, bool) or int(frames_per_batch) < 1:
             raise ValueError(f"frames_per_batch must be an integer >= 1, got {frames_per_batch!r}")
@@ -209,6 +213,8 @@ class LeanCollector:
         self._action_key = env.action_key
         self._action_spec = env.full_action_spec_unbatched[self._action_key]
         self.exploration_type = exploration_type
+        device = torch.device("cpu") if policy_device is None else torch.device(policy_device)
+        self._device = None if device.type == "cpu" else device
         self._sampler: ActorSampler | None = None
         self._random = isinstance(policy, RandomPolicy)
         if isinstance(policy, ProbabilisticActor) and exploration_type == ExplorationType.RANDOM:
@@ -227,7 +233,8 @@ class LeanCollector:
         self._current = self._reset()
         if self._sampler is None and not _has_full_spec(policy):
             with torch.no_grad():
-                policy(self._root_td(*self._current))
+                td = self._root_td(*self._current)
+                policy(td if self._device is None else td.to(self._device))
 
     @staticmethod
     def supports(env: EnvBase) -> bool:
@@ -325,6 +332,7 @@ class LeanCollector:
         outputs: list[Any] = []
         act_s = 0.0
         ended = False
+        device = self._device
         sampler = self._sampler
         observation = lay.observation.observation
         with torch.no_grad(), set_exploration_type(self.exploration_type):
@@ -336,14 +344,20 @@ class LeanCollector:
                 traj[t] = self._traj
                 a0 = clock()
                 if sampler is not None:
-                    action, params = sampler.sample_with_params(
-                        observation(torch.from_numpy(obs).to(torch.float32))
-                    )
+                    policy_obs = observation(torch.from_numpy(obs).to(torch.float32))
+                    if device is not None:
+                        policy_obs = policy_obs.to(device)
+                    action, params = sampler.sample_with_params(policy_obs)
+                    if device is not None:
+                        action = action.cpu()
                     outputs.append(params)
                 elif self._random:
                     action = self.policy.action_spec.rand().get(self._action_key)
                 else:
-                    out = self.policy(self._root_td(obs, info))
+                    td = self._root_td(obs, info)
+                    out = self.policy(td if device is None else td.to(device))
+                    if device is not None:
+                        out = out.to("cpu")
                     action = out.get(self._action_key)
                     outputs.append(out)
                 act_s += clock() - a0
@@ -457,7 +471,7 @@ class LeanCollector:
         batch.set("episode_reward", torch.from_numpy(ep_root).to(reward.dtype)[:, None])
         batch.set(("next", "episode_reward"), torch.from_numpy(ep_next).to(reward.dtype)[:, None])
         if self._sampler is not None:
-            params = [torch.stack(p) for p in zip(*outputs, strict=True)]
+            params = [torch.stack(p).cpu() for p in zip(*outputs, strict=True)]
             for key, value in zip(self._sampler.param_keys, params, strict=True):
                 batch.set(key, value)
             batch.set("action_log_prob", self._sampler.distribution(*params).log_prob(action))

@@ -12,6 +12,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
+from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 
 #: Methods of ``recipes/train.py``.
 METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc", "sac", "sac_mpc")
@@ -224,6 +225,7 @@ TRAIN_SETTINGS: dict[str, Setting] = {
     "sac.update": Setting("choice", choices=SAC_UPDATES, **_OPTIONAL),
     "ppo.update": Setting("choice", choices=PPO_UPDATES, **_OPTIONAL),
     "collector": Setting("choice", choices=COLLECTORS, **_OPTIONAL),
+    "device": Setting("str", **_OPTIONAL),
     "sac.refit_every_steps": _int(1),
 }
 #: Subtrees whose keys are not fixed (see :data:`TRAIN_SETTINGS`).
@@ -351,6 +353,10 @@ def validate_train_config(cfg: Any) -> None:
             f"reward.name={cfg['reward']['name']!r} is not a reward; allowed: {sorted(REWARDS)}"
         )
     _check_settings(cfg)
+    try:
+        resolve_device(cfg.get("device", "cpu"))
+    except DeviceError as err:
+        raise ConfigError(str(err)) from err
     reward = cfg["reward"]["name"]
     if reward not in REWARDS:
         raise ConfigError(f"reward.name={reward!r} is not a reward; allowed: {sorted(REWARDS)}")

@@ -39,7 +39,8 @@ def save_policy(actor: torch.nn.Module, run_dir: str | Path, step: int) -> Path:
     """
     path = Path(run_dir) / POLICY_FILE
     tmp = path.with_suffix(".pt.tmp")
-    torch.save({"state_dict": actor.state_dict(), "real_steps": int(step)}, tmp)
+    state = {name: t.detach().cpu() for name, t in actor.state_dict().items()}
+    torch.save({"state_dict": state, "real_steps": int(step)}, tmp)
     os.replace(tmp, path)
     return path
 

@@ -56,6 +56,7 @@ from torchrl_mbmf.trainers.config import (
     resume_changes,
     validate_train_config,
 )
+from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
@@ -244,6 +245,8 @@ class Trainer:
         self.times = dict.fromkeys(self.TIME_KEYS, 0.0)
         if cfg.get("threads") is not None:
             torch.set_num_threads(int(cfg.threads))
+        # networks, world model, planner and updates; the MuJoCo envs stay on the CPU
+        self.device = resolve_device(cfg.get("device", "cpu"))
         self.env = self._make_env(int(cfg.seed))
         self.eval_env = self._make_env(int(cfg.seed) + 1000, num_envs=1)
         self.progress: dict[str, Any] = {
@@ -299,6 +302,8 @@ class Trainer:
                 distribution=c.distribution,
                 init_log_std=float(c.init_log_std),
             )
+            self.actor.to(self.device)
+            self.critic.to(self.device)
             self.loss = ClipPPOLoss(
                 self.actor,
                 self.critic,
@@ -329,6 +334,8 @@ class Trainer:
         else:
             c = cfg.sac
             self.actor, qvalue = make_sac_actor_critic(self.env, hidden_sizes=tuple(c.hidden_sizes))
+            self.actor.to(self.device)
+            qvalue.to(self.device)
             self.critic = qvalue
             self.loss = SACLoss(
                 self.actor,
@@ -337,13 +344,15 @@ class Trainer:
                 alpha_init=float(c.alpha_init),
                 action_spec=self.env.full_action_spec_unbatched[self.env.action_key],
             )
+            self.loss.to(self.device)
             self.loss.make_value_estimator(gamma=float(c.gamma))
             self.target_updater = SoftUpdate(self.loss, tau=float(c.tau))
             fused = c.update == "fused"
             # the fused path also uses torch's fused Adam (same update up to float rounding)
             self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr), fused=fused)
             self.replay = TensorDictReplayBuffer(
-                storage=LazyTensorStorage(int(c.replay_size)), batch_size=int(c.batch_size)
+                storage=LazyTensorStorage(int(c.replay_size), device=self.device),
+                batch_size=int(c.batch_size),
             )
             self.replay_sampler = None
             if fused:
@@ -370,12 +379,12 @@ class Trainer:
                 num_members=members,
                 hidden_sizes=tuple(wm.hidden_sizes),
                 probabilistic=bool(wm.get("probabilistic", False)),
-            )
+            ).to(self.device)
             model_env = EnsembleLearnedDynamicsEnv(self.model, self.env)
         else:
             self.model = DeltaDynamicsModel(
                 state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes)
-            )
+            ).to(self.device)
             model_env = LearnedDynamicsEnv(self.model, self.env)
         self.model_optim = torch.optim.Adam(self.model.parameters(), lr=float(wm.lr))
         self.dataset = TransitionDataset({**env_metadata(self.env), "seed": int(cfg.seed)})
@@ -548,7 +557,10 @@ class Trainer:
                         self.actor,
                         frames_per_batch=1,
                         exploration_type=ExplorationType.DETERMINISTIC,
+                        policy_device=self.device,
                     ).episode()
+                elif self.device.type != "cpu":
+                    td = self.eval_env.rollout(100_000, self._cpu_actor())
                 else:
                     td = self.eval_env.rollout(100_000, self.actor)
                 returns.append(float(td.get(("next", "reward")).sum()))
@@ -620,13 +632,23 @@ class Trainer:
     def _collector(self, policy: Any, frames: int, total: int) -> Any:
         """The lean collector where the env supports it (``collector=lean``), else the stock one."""
         if self.cfg.get("collector", "lean") == "lean" and LeanCollector.supports(self.env):
-            return LeanCollector(self.env, policy, frames_per_batch=frames, total_frames=total)
+            return LeanCollector(
+                self.env,
+                policy,
+                frames_per_batch=frames,
+                total_frames=total,
+                policy_device=self.device,
+            )
+        devices = {}
+        if self.device.type != "cpu":
+            devices = {"policy_device": self.device, "env_device": "cpu", "storing_device": "cpu"}
         return Collector(
             self.env,
             policy,
             frames_per_batch=frames,
             total_frames=total,
             auto_register_policy_transforms=False,
+            **devices,
         )
 
     def _close_collector(self, collector: Any) -> None:
@@ -657,6 +679,8 @@ class Trainer:
     def ppo_update(self, batch: TensorDictBase) -> None:
         """Thesis PPO: GAE once per batch, ``epochs`` passes of ``minibatch_size`` minibatches."""
         c = self.cfg.ppo
+        if self.device.type != "cpu":
+            batch = batch.to(self.device)
         if self.ppo_step is not None:
             stats = self.ppo_step(batch)
         else:
@@ -678,6 +702,12 @@ class Trainer:
                 "train/updates": self.progress["updates"],
             }
         )
+
+    def _cpu_actor(self) -> Any:
+        """A CPU copy of the actor (the stock env rollout runs the policy where the env is)."""
+        import copy
+
+        return copy.deepcopy(self.actor).to("cpu")
 
     def _replay_view(self, batch: TensorDictBase) -> TensorDictBase:
         """The entries SACLoss reads, flattened (planner extras and log-probs are dropped)."""
