@@ -20,3 +20,40 @@ def _seed_and_threads():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+class _WritesMarker:
+    """Unpickling this object creates the file ``marker`` (stands for arbitrary code)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+@pytest.fixture
+def plant_pickle(tmp_path_factory):
+    """Adds a pickled non-tensor entry ``name`` to a ``TensorDict.memmap`` folder.
+
+    ``TensorDict.load_memmap`` would unpickle it and create the returned marker file.
+    """
+    import json
+    import shutil
+
+    from tensordict import TensorDict
+
+    def plant(folder, name: str = "payload"):
+        scratch = tmp_path_factory.mktemp("pickle")
+        marker = scratch / "marker"
+        meta_file = folder / "meta.json"
+        meta = json.loads(meta_file.read_text())
+        td = TensorDict(batch_size=meta["shape"])
+        td.set_non_tensor(name, _WritesMarker(str(marker)))
+        td.memmap(scratch / "td")
+        shutil.copytree(scratch / "td" / name, folder / name)
+        meta[name] = {"type": "NonTensorData"}
+        meta_file.write_text(json.dumps(meta))
+        return marker
+
+    return plant

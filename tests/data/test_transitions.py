@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import pytest
@@ -199,3 +200,71 @@ def test_interrupted_save_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         data.save(tmp_path / "ds")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_load_never_unpickles_a_planted_entry(tmp_path, plant_pickle):
+    data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 20, seed=0)
+    path = data.save(tmp_path / "ds")
+    marker = plant_pickle(path / "buffer")
+    with pytest.raises(CorruptDatasetError, match=r"meta\.json.*payload"):
+        TransitionDataset.load(path)
+    assert not marker.exists()
+    # a pickle sidecar next to the tensors is refused too, by name
+    path = data.save(tmp_path / "ds2")
+    (path / "buffer" / "other.pickle").write_bytes(b"\x80\x04N.")
+    with pytest.raises(CorruptDatasetError, match=r"other\.pickle"):
+        TransitionDataset.load(path)
+
+
+def test_checksum_covers_the_metadata(tmp_path):
+    data = collect_random_transitions(make_env("HalfCheetah-v5", reward="head_pen"), 20, seed=0)
+    path = data.save(tmp_path / "ds")
+    meta_path = path / "metadata.json"
+    meta = json.loads(meta_path.read_text())
+    for edit in (
+        {"reward": {**meta["reward"], "name": "shin_pen"}},
+        {"reward": {**meta["reward"], "threshold": 0.9}},
+        {"seed": 7},
+    ):
+        meta_path.write_text(json.dumps({**meta, **edit}))
+        with pytest.raises(CorruptDatasetError, match="checksum"):
+            TransitionDataset.load(path)
+    # a dtype edited in the buffer's meta.json (same bytes) is caught as well
+    meta_path.write_text(json.dumps(meta))
+    TransitionDataset.load(path)
+    buffer_meta = path / "buffer" / "meta.json"
+    td_meta = json.loads(buffer_meta.read_text())
+    td_meta["traj_id"]["dtype"] = "torch.float64"
+    buffer_meta.write_text(json.dumps(td_meta))
+    with pytest.raises(CorruptDatasetError, match="checksum"):
+        TransitionDataset.load(path)
+
+
+def test_missing_tensor_file_names_it(tmp_path):
+    data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 20, seed=0)
+    path = data.save(tmp_path / "ds")
+    (path / "buffer" / "next" / "reward.memmap").unlink()
+    with pytest.raises(CorruptDatasetError, match=r"next/reward\.memmap"):
+        TransitionDataset.load(path)
+    # a truncated file is named as well, and is not re-extended on disk
+    path = data.save(tmp_path / "ds2")
+    state = path / "buffer" / "state.memmap"
+    state.write_bytes(state.read_bytes()[:100])
+    with pytest.raises(CorruptDatasetError, match=r"state\.memmap has 100 bytes"):
+        TransitionDataset.load(path)
+    assert state.stat().st_size == 100
+
+
+@pytest.mark.parametrize(
+    "field", ["state", "action", ("next", "state"), ("next", "reward")], ids=str
+)
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_extend_refuses_non_finite_transitions(field, value):
+    data = TransitionDataset(META)
+    bad = _batch(2, 3)
+    bad.get(field)[1, 2, 0] = value
+    with pytest.raises(ValueError, match=re.escape(f"NaN or Inf in {field!r}")):
+        data.extend(bad)
+    assert len(data) == 0
+    data.extend(_batch(2, 3))
+    assert len(data) == 6

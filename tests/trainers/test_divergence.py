@@ -59,7 +59,7 @@ def test_diverged_update_stops_the_run(tmp_path, monkeypatch):
 
 
 def test_non_finite_evaluation_stops_the_run(tmp_path, monkeypatch):
-    trainer = _trainer(tmp_path)
+    trainer = _trainer(tmp_path, "collector=stock")  # the path that calls eval_env.rollout
     monkeypatch.setattr(trainer.eval_env, "rollout", lambda *a, **k: _nan_rollout())
     with pytest.raises(TrainingDivergedError, match=r"eval/return=nan at real step 0"):
         trainer.evaluate()

@@ -20,10 +20,12 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 import torchrl_mbmf
+from torchrl_mbmf.data.memmap import UnsafeFolderError, load_tensor_folder
 from torchrl_mbmf.envs.factory import env_metadata
 from torchrl_mbmf.envs.keys import STATE_KEY
 
-_FORMAT = "torchrl_mbmf.transitions/1"
+# Version 2: the checksum also covers the metadata and each tensor's dtype and shape.
+_FORMAT = "torchrl_mbmf.transitions/2"
 _META_FILE = "metadata.json"
 _BUFFER_DIR = "buffer"
 TRAJ_KEY = "traj_id"
@@ -135,8 +137,11 @@ class TransitionDataset:
     ``metadata.json`` (env id, reward name and parameters, step
     count, seed, package version, and a SHA-256 of the stored tensors) into a temporary folder
     renamed into place, so a crash during a save never leaves a half-written dataset under the
-    target name. ``load`` checks the metadata against what the caller expects and the checksum
-    against the data, and raises instead of returning partial data.
+    target name. ``load`` checks the checksum against the data and metadata, then the metadata
+    against what the caller expects, and raises instead of returning partial data. Loading
+    never unpickles: the stored tensors are read from their raw files (see
+    :func:`~torchrl_mbmf.data.memmap.load_tensor_folder`) and any other stored entry is
+    refused. ``extend`` refuses transitions with a NaN or Inf in any stored field.
 
     Args:
         metadata: provenance, at least ``env_id`` and ``reward`` (see
@@ -211,7 +216,8 @@ class TransitionDataset:
                 the next belong to the same episode unless it was done.
 
         Raises:
-            ValueError: on a batch of another shape, missing keys, or when full.
+            ValueError: on a batch of another shape, missing keys, a NaN or Inf in a stored
+                field (state, action, next state, reward; nothing is stored), or when full.
         """
         if batch.batch_dims == 1:
             batch = batch.unsqueeze(0)
@@ -226,6 +232,10 @@ class TransitionDataset:
         missing = [k for k in self.keys[:-2] if k not in batch.keys(True)]
         if missing:
             raise ValueError(f"transitions lack keys {missing}; present: {batch.keys(True)}")
+        # One vectorised check per field, before anything is stored.
+        for name in self.keys[:4]:
+            if not torch.isfinite(batch.get(name)).all():
+                raise ValueError(f"transitions contain NaN or Inf in {name!r}; nothing was stored")
         done = _done_of(batch)
         if self._open_traj is None or self._open_traj.numel() != n_envs:
             self._open_traj = torch.arange(self._next_traj, self._next_traj + n_envs)
@@ -253,9 +263,6 @@ class TransitionDataset:
             },
             batch_size=[n_envs, steps],
         ).reshape(-1)
-        for name in (self.state_key, self.action_key):
-            if not torch.isfinite(flat.get(name)).all():
-                raise ValueError(f"transitions contain NaN or Inf in {name!r}")
         self.buffer.extend(flat.to(torch.device("cpu")))
 
     def tensors(self) -> TensorDictBase:
@@ -312,12 +319,17 @@ class TransitionDataset:
             length,
         )
 
-    def _checksum(self) -> str:
+    def _checksum(self, meta: Mapping[str, Any]) -> str:
+        """SHA-256 of the metadata (all but ``sha256``), each tensor's dtype, shape and bytes."""
         digest = hashlib.sha256()
+        record = {k: v for k, v in meta.items() if k != "sha256"}
+        digest.update(json.dumps(record, sort_keys=True, separators=(",", ":")).encode())
         if len(self):
             data = self.tensors()
             for key in self.keys:
-                digest.update(data.get(key).contiguous().numpy().reshape(-1).view("uint8"))
+                tensor = data.get(key).contiguous()
+                digest.update(f"{key!r}:{tensor.dtype}:{list(tensor.shape)};".encode())
+                digest.update(tensor.reshape(-1).view(torch.uint8).numpy())
         return digest.hexdigest()
 
     def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
@@ -355,7 +367,7 @@ class TransitionDataset:
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
         try:
             if len(self):
-                self.tensors().memmap(tmp / _BUFFER_DIR)
+                self.tensors().select(*self.keys).memmap(tmp / _BUFFER_DIR)
             meta = {
                 **self.metadata,
                 "format": _FORMAT,
@@ -363,10 +375,12 @@ class TransitionDataset:
                 "capacity": self.capacity,
                 "next_traj": self._next_traj,
                 "open_traj": None if self._open_traj is None else self._open_traj.tolist(),
-                "sha256": self._checksum(),
                 "keys": [list(k) if isinstance(k, tuple) else k for k in self.keys],
                 "package_version": torchrl_mbmf.__version__,
             }
+            # the checksum is taken over the metadata as it will be read back (JSON types)
+            meta = json.loads(json.dumps(meta))
+            meta["sha256"] = self._checksum(meta)
             (tmp / _META_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True))
             if path.exists():
                 old = path.with_name(path.name + ".old")
@@ -425,7 +439,9 @@ class TransitionDataset:
         Raises:
             FileNotFoundError: if there is no dataset at ``path``.
             DatasetMismatchError: if an ``expect`` entry differs (the message names it).
-            CorruptDatasetError: if files are missing, truncated or fail the checksum.
+            CorruptDatasetError: if files are missing (the message names them), truncated,
+                hold anything but the expected plain tensors, or fail the checksum (which
+                covers the metadata too).
         """
         path = Path(path)
         meta_file = path / _META_FILE
@@ -435,20 +451,19 @@ class TransitionDataset:
             meta = json.loads(meta_file.read_text())
         except json.JSONDecodeError as err:
             raise CorruptDatasetError(f"{meta_file} is not valid JSON: {err}") from err
-        if meta.get("format") != _FORMAT:
-            raise CorruptDatasetError(
-                f"{path} has format {meta.get('format')!r}, expected {_FORMAT!r}"
+        if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
+            found = meta.get("format") if isinstance(meta, dict) else None
+            hint = (
+                " (written by an older version whose checksum did not cover the metadata: "
+                "collect or save it again)"
+                if found == "torchrl_mbmf.transitions/1"
+                else ""
             )
+            raise CorruptDatasetError(f"{path} has format {found!r}, expected {_FORMAT!r}{hint}")
         required = ("num_transitions", "sha256", "keys", "next_traj", "open_traj")
         missing = [k for k in required if k not in meta]
         if missing:
             raise CorruptDatasetError(f"{meta_file} lacks the entries {missing}")
-        for key, value in (expect or {}).items():
-            if meta.get(key) != value:
-                raise DatasetMismatchError(
-                    f"dataset at {path} was collected with {key}={meta.get(key)!r}, "
-                    f"expected {key}={value!r}; collect new data for this configuration"
-                )
         n = int(meta["num_transitions"])
         provenance = {
             k: v
@@ -466,6 +481,8 @@ class TransitionDataset:
             )
         }
         keys = [tuple(k) if isinstance(k, list) else k for k in meta["keys"]]
+        if len(keys) != 6 or not isinstance(keys[3], tuple) or len(keys[3]) != 2:
+            raise CorruptDatasetError(f"{meta_file} has an invalid key list {meta['keys']!r}")
         data = cls(
             provenance,
             capacity=max(capacity or int(meta.get("capacity", 0)), n, 1),
@@ -477,18 +494,31 @@ class TransitionDataset:
         data.metadata["package_version"] = meta.get("package_version")
         if n:
             try:
-                stored = TensorDict.load_memmap(path / _BUFFER_DIR)
-                if stored.batch_size != (n,):
-                    raise ValueError(f"batch size {tuple(stored.batch_size)} != ({n},)")
-                data.buffer.extend(stored)
-            except Exception as err:
+                # JSON and raw tensor files only: nothing stored is ever unpickled
+                stored = load_tensor_folder(path / _BUFFER_DIR, keys=data.keys)
+            except UnsafeFolderError as err:
                 raise CorruptDatasetError(f"cannot read the buffer of {path}: {err}") from err
-            if len(data) != n:
+            absent = [k for k in data.keys if k not in stored.keys(True, True)]
+            if absent:
                 raise CorruptDatasetError(
-                    f"{path} holds {len(data)} transitions, its metadata says {n}"
+                    f"cannot read the buffer of {path}: "
+                    f"{path / _BUFFER_DIR / 'meta.json'} lacks the entries {absent}"
                 )
-        if data._checksum() != meta["sha256"]:
-            raise CorruptDatasetError(f"{path}: stored transitions do not match their checksum")
+            if stored.batch_size != (n,):
+                raise CorruptDatasetError(
+                    f"{path} holds {tuple(stored.batch_size)} transitions, its metadata says {n}"
+                )
+            data.buffer.extend(stored)
+        if data._checksum(meta) != meta["sha256"]:
+            raise CorruptDatasetError(
+                f"{path}: stored transitions or metadata do not match their checksum"
+            )
+        for key, value in (expect or {}).items():
+            if meta.get(key) != value:
+                raise DatasetMismatchError(
+                    f"dataset at {path} was collected with {key}={meta.get(key)!r}, "
+                    f"expected {key}={value!r}; collect new data for this configuration"
+                )
         data._next_traj = int(meta["next_traj"])
         if meta["open_traj"] is not None:
             data._open_traj = torch.tensor(meta["open_traj"], dtype=torch.long)

@@ -16,13 +16,8 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import OmegaConf
-from tensordict import TensorDict, TensorDictBase
-from torchrl.checkpoint import (
-    Checkpoint,
-    CheckpointRotation,
-    DumpLoadCheckpointAdapter,
-    GlobalRNGState,
-)
+from tensordict import TensorDictBase
+from torchrl.checkpoint import CheckpointRotation, GlobalRNGState, JSONCheckpointAdapter
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
@@ -46,6 +41,13 @@ from torchrl_mbmf.modules.planners import (
     MinQValue,
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
+)
+from torchrl_mbmf.trainers.checkpointing import (
+    DatasetCheckpointAdapter,
+    ReplayCheckpointAdapter,
+    TensorStateAdapter,
+    VerifiedCheckpoint,
+    latest_intact_checkpoint,
 )
 from torchrl_mbmf.trainers.config import (
     MODEL_BASED,
@@ -120,51 +122,6 @@ def _git_commit() -> str:
         return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-
-
-class _DatasetAdapter(DumpLoadCheckpointAdapter):
-    """Checkpoints a TransitionDataset with its own atomic, checksummed format."""
-
-    adapter_id = "torchrl_mbmf.transitions"
-
-    def save(self, component: Any, path: Path, *, args: tuple, kwargs: dict) -> Any:
-        component.dumps(path / "transitions")
-
-    def load(self, component: Any, path: Path, **kwargs: Any) -> None:
-        component.loads(path / "transitions")
-
-
-class _ReplayAdapter(DumpLoadCheckpointAdapter):
-    """Checkpoints a replay buffer's filled part only, with its write cursor.
-
-    A ``LazyTensorStorage`` is allocated at full capacity (1e6 transitions for SAC), and the
-    stock state dict writes all of it; this writes the ``len(buffer)`` filled rows as a
-    memory-mapped TensorDict and restores them at the same positions, so sampling after a
-    resume is identical.
-    """
-
-    adapter_id = "torchrl_mbmf.replay_filled"
-
-    def save(self, component: Any, path: Path, *, args: tuple, kwargs: dict) -> Any:
-        path.mkdir(parents=True, exist_ok=True)
-        filled = len(component)
-        if filled:
-            component.storage[:filled].memmap(path / "data")
-        state = {"filled": filled, "writer": component.writer.state_dict()}
-        (path / "replay.json").write_text(json.dumps(state))
-
-    def load(self, component: Any, path: Path, **kwargs: Any) -> None:
-        state = json.loads((path / "replay.json").read_text())
-        component.empty()
-        if state["filled"]:
-            data = TensorDict.load_memmap(path / "data")
-            if data.shape[0] != state["filled"]:
-                raise ValueError(
-                    f"replay checkpoint {path} holds {data.shape[0]} rows, "
-                    f"its record says {state['filled']}"
-                )
-            component.extend(data.clone())
-        component.writer.load_state_dict(state["writer"])
 
 
 def seed_everything(seed: int) -> None:
@@ -421,27 +378,34 @@ class Trainer:
             else:
                 self.planner = PolicyGuidedMPCPlanner(model_env, self.actor, **kwargs)
 
-    def _make_checkpoint(self) -> Checkpoint:
+    def _make_checkpoint(self) -> VerifiedCheckpoint:
+        # Every component is restored without pickle, and only after the whole checkpoint
+        # passed its integrity record (see torchrl_mbmf.trainers.checkpointing).
+        checkpoint = VerifiedCheckpoint()
+        checkpoint.register("progress", self.progress, adapter=JSONCheckpointAdapter())
+        state = TensorStateAdapter()
         components: dict[str, Any] = {
             "loss": self.loss,
             "optim": self.optim,
             "rng": GlobalRNGState(),
-            "progress": self.progress,
         }
         if self.model is not None:
             components["world_model"] = self.model
             components["model_optim"] = self.model_optim
         if self.logger is not None and hasattr(self.logger, "state_dict"):
             components["logger"] = self.logger
-        checkpoint = Checkpoint(**components)
+        for name, component in components.items():
+            checkpoint.register(name, component, adapter=state)
         if self.dataset is not None:
-            checkpoint.register("dataset", self.dataset, adapter=_DatasetAdapter())
+            checkpoint.register("dataset", self.dataset, adapter=DatasetCheckpointAdapter())
         if self.replay is not None:
-            checkpoint.register("replay", self.replay, adapter=_ReplayAdapter())
+            adapter = ReplayCheckpointAdapter(keys=self.loss.in_keys)
+            checkpoint.register("replay", self.replay, adapter=adapter)
         return checkpoint
 
     def _maybe_resume(self) -> bool:
-        latest = self.rotation.latest()
+        # the newest checkpoint that passes its integrity record (older one on damage)
+        latest = latest_intact_checkpoint(self.rotation)
         if latest is None:
             # A run killed before its first checkpoint starts again: its rows go.
             removed = self._cut_logs({})
