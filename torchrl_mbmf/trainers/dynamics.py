@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
 import time
@@ -370,23 +369,30 @@ def fit_dynamics(
                 "on the one-step loss",
                 multi_step,
             )
-    best_state = copy.deepcopy(model.state_dict())
+    best_state = _StateSnapshot(model)
     history.best_epoch = -1
     bad_epochs = 0
     n_train = len(train_idx)
+    # Each epoch gathers the training split once, in the epoch's shuffled order, into these
+    # buffers; its minibatches are then contiguous slices holding exactly the rows that
+    # ``train_x[order[i : i + batch_size]]`` would gather.
+    epoch_x, epoch_y = torch.empty_like(train_x), torch.empty_like(train_y)
     bar = tqdm(range(max_epochs), desc="world model", unit="epoch", disable=not progress)
     for epoch in bar:
         order = torch.randperm(n_train, generator=generator).to(device)
+        torch.index_select(train_x, 0, order, out=epoch_x)
+        torch.index_select(train_y, 0, order, out=epoch_y)
         total = torch.zeros((), device=device)
         if rollout is not None:
             rollout.start_epoch(window_generator)
         for i in range(0, n_train, batch_size):
-            idx = order[i : i + batch_size]
-            loss = loss_module.scaled_loss(train_x[idx], train_y[idx])
-            total += loss.detach() * idx.numel()
+            batch_x, batch_y = epoch_x[i : i + batch_size], epoch_y[i : i + batch_size]
+            size = batch_x.shape[0]
+            loss = loss_module.scaled_loss(batch_x, batch_y)
+            total += loss.detach() * size
             if rollout is not None:
-                multi = loss_module.multi_step_loss(*rollout.next_batch(idx.numel()))
-                rollout.record(multi, idx.numel())
+                multi = loss_module.multi_step_loss(*rollout.next_batch(size))
+                rollout.record(multi, size)
                 loss = loss + multi_step_weight * multi
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -410,7 +416,7 @@ def fit_dynamics(
             best_one_step = current
             if rollout is not None:
                 best_multi = history.val_multi_step_loss[-1]
-            best_state = copy.deepcopy(model.state_dict())
+            best_state.save()
         else:
             bad_epochs += 1
             if bad_epochs >= patience:
@@ -420,7 +426,7 @@ def fit_dynamics(
     history.best_val_loss = best_one_step
     if rollout is not None:
         history.best_val_multi_step_loss = best_multi
-    model.load_state_dict(best_state)
+    best_state.restore()
     history.seconds = time.perf_counter() - start
     logger.info(
         "fit_dynamics: %d epochs, best val loss %.5f at epoch %d (%.1fs)",
@@ -441,6 +447,24 @@ def fit_dynamics(
             early_stopping,
         )
     return history
+
+
+class _StateSnapshot:
+    """A copy of a model's ``state_dict`` kept in preallocated tensors (the best epoch's)."""
+
+    def __init__(self, model: torch.nn.Module) -> None:
+        self.model = model
+        self.saved = {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+    def save(self) -> None:
+        """Copies the model's current state into the snapshot."""
+        with torch.no_grad():
+            for key, value in self.model.state_dict().items():
+                self.saved[key].copy_(value)
+
+    def restore(self) -> None:
+        """Loads the snapshot back into the model."""
+        self.model.load_state_dict(self.saved)
 
 
 class _MultiStepWindows:
