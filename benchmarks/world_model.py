@@ -6,7 +6,9 @@ python benchmarks/world_model.py --data ... --sizes 100000 200000 400000 --warm-
 
 Fit throughput ("fit" rows, ``results/world_model_fit.json``): seconds per epoch and
 samples/s of the thesis fit (24 -> 500 -> 500 -> 19, Adam lr 1e-4, batch 512) at each size,
-measured in one process on one thread, alternating A B C A B C: ``before`` is the fit loop as
+measured in one process on one thread, alternating A B C A B C, in CPU seconds of the
+process (``time.process_time``: on a shared, overloaded machine the wall time mostly
+measures the waits for a core; both are written): ``before`` is the fit loop as
 it was before the speed work (a per-minibatch index gather, the stock ``net(x)``, the stock
 Adam; kept below as :func:`reference_fit`), ``after`` is :func:`fit_dynamics` (bit-identical
 to ``before``, checked here), ``after + fused Adam`` is :func:`fit_dynamics` with
@@ -153,6 +155,71 @@ def reference_fit(
     return losses
 
 
+def step_rows(data: TensorDict, rounds: int, block: int) -> list[dict]:
+    """One minibatch step (batch 512) of each fit loop, alternated in blocks of ``block`` steps.
+
+    The rows give CPU time (see the module docstring) and the wall time.
+
+    Finer-grained than whole fits, so slow drifts of a shared machine's load hit the variants
+    alike; the ratio of each round's block times is taken before the median.
+    """
+    torch.manual_seed(0)
+    base = DeltaDynamicsModel(18, 6)
+    s, a = data["state"], data["action"]
+    nxt, r = data["next", "state"], data["next", "reward"].reshape(-1, 1)
+    base.fit_normalizer(s, a, nxt, r)
+    x, y = DynamicsLoss(base).scaled_pairs(s, a, nxt, r)
+    n = (x.shape[0] // 512) * 512
+    order = torch.randperm(x.shape[0])[:n]
+    xs, ys = x[order], y[order]
+    steps = {}
+    for what in ("before", "after", "after + fused Adam"):
+        model = copy.deepcopy(base)
+        loss_module = DynamicsLoss(model)
+        optimizer = dynamics_optimizer(model, fused_adam=what.endswith("fused Adam"))
+
+        def step(i, what=what, model=model, loss_module=loss_module, optimizer=optimizer):
+            j = (i * 512) % n
+            if what == "before":
+                idx = order[j : j + 512]
+                loss = F.mse_loss(model.net(x[idx]), y[idx])
+            else:
+                loss = loss_module.scaled_loss(xs[j : j + 512], ys[j : j + 512])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+
+        steps[what] = step
+    times: dict[str, list[float]] = {k: [] for k in steps}
+    walls: dict[str, list[float]] = {k: [] for k in steps}
+    for r_ in range(rounds + 1):
+        for what, step in steps.items():
+            start, wall = time.process_time(), time.perf_counter()
+            for i in range(block):
+                step(r_ * block + i)
+            if r_ > 0:  # round 0 warms up
+                times[what].append((time.process_time() - start) / block)
+                walls[what].append((time.perf_counter() - wall) / block)
+    rows = []
+    for what, values in times.items():
+        ratio = statistics.median(b / v for b, v in zip(times["before"], values, strict=True))
+        sec = statistics.median(values)
+        rows.append(
+            {
+                "what": f"step: {what}",
+                "batch": 512,
+                "cpu_ms": sec * 1e3,
+                "wall_ms": statistics.median(walls[what]) * 1e3,
+                "samples_per_cpu_s": 512 / sec,
+                "speedup": ratio,
+                "GFLOP_per_cpu_s": 512 * FLOP_PER_SAMPLE / sec / 1e9,
+                "runs": len(values),
+            }
+        )
+    print_table(rows)
+    return rows
+
+
 def fit_rows(data: TensorDict, sizes: list[int], epochs: int, repeats: int) -> list[dict]:
     """Seconds per epoch of before / after / after + fused Adam, alternated, at each size."""
     rows = []
@@ -162,13 +229,14 @@ def fit_rows(data: TensorDict, sizes: list[int], epochs: int, repeats: int) -> l
         subset = grow(data, size)
         n_train = size - max(1, round(size * 0.1))
         times: dict[str, list[float]] = {"before": [], "after": [], "after + fused Adam": []}
+        walls: dict[str, list[float]] = {k: [] for k in times}
         identical = True
         for rep in range(repeats):
             weights = {}
             for what in times:
                 model = copy.deepcopy(base)
                 optimizer = dynamics_optimizer(model, fused_adam=what.endswith("fused Adam"))
-                start = time.perf_counter()
+                start, wall = time.process_time(), time.perf_counter()
                 if what == "before":
                     reference_fit(model, subset, optimizer, max_epochs=epochs, seed=rep)
                 else:
@@ -180,7 +248,8 @@ def fit_rows(data: TensorDict, sizes: list[int], epochs: int, repeats: int) -> l
                         patience=epochs,
                         seed=rep,
                     )
-                times[what].append((time.perf_counter() - start) / epochs)
+                times[what].append((time.process_time() - start) / epochs)
+                walls[what].append((time.perf_counter() - wall) / epochs)
                 weights[what] = model.state_dict()
             identical &= all(
                 torch.equal(weights["before"][k], v) for k, v in weights["after"].items()
@@ -192,10 +261,11 @@ def fit_rows(data: TensorDict, sizes: list[int], epochs: int, repeats: int) -> l
                 {
                     "what": what,
                     "transitions": size,
-                    "s_per_epoch": sec,
-                    "samples_per_s": n_train / sec,
+                    "cpu_s_per_epoch": sec,
+                    "wall_s_per_epoch": statistics.median(walls[what]),
+                    "samples_per_cpu_s": n_train / sec,
                     "speedup": before / sec,
-                    "GFLOP_per_s": n_train * FLOP_PER_SAMPLE / sec / 1e9,
+                    "GFLOP_per_cpu_s": n_train * FLOP_PER_SAMPLE / sec / 1e9,
                     "bit_identical_to_before": identical if what == "after" else None,
                     "runs": len(values),
                 }
@@ -271,11 +341,14 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="*", type=int, default=[20_000])
     parser.add_argument("--epochs", type=int, default=2, help="timed epochs per fit")
     parser.add_argument("--repeats", type=int, default=2, help="A B C rounds per size")
+    parser.add_argument("--step-rounds", type=int, default=10, help="A B C rounds of steps")
+    parser.add_argument("--step-block", type=int, default=10, help="steps per block")
     parser.add_argument("--warm-refits", action="store_true")
     parser.add_argument("--initial", type=int, default=10_000)
     parser.add_argument("--initial-epochs", type=int, default=200)
     parser.add_argument("--skip-fit-rows", action="store_true")
     parser.add_argument("--skip-env", action="store_true")
+    parser.add_argument("--out", default="world_model_fit", help="JSON name of the fit rows")
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.data:
@@ -294,10 +367,11 @@ def main() -> None:
     }
     if not args.skip_fit_rows:
         extra["matmul_peak_gflops_before"] = matmul_peak_gflops()
-        rows = fit_rows(data, args.sizes, args.epochs, args.repeats)
+        rows = step_rows(data, args.step_rounds, args.step_block)
+        rows += fit_rows(data, args.sizes, args.epochs, args.repeats)
         extra["matmul_peak_gflops_after"] = matmul_peak_gflops()
         print_table(rows)
-        print(f"wrote {write('world_model_fit', rows, extra)}")
+        print(f"wrote {write(args.out, rows, extra)}")
     if args.warm_refits:
         warm_refits(data, args.initial, args.sizes, args.initial_epochs)
     if not args.skip_env:
