@@ -89,3 +89,56 @@ def test_wrong_sizes_are_named():
     data["action"] = torch.zeros(5, 3)
     with pytest.raises(ValueError, match="action_dim=2"):
         loss(data)
+
+
+def _grads_of(model, x, y, loss_fn):
+    model.zero_grad(set_to_none=True)
+    loss = loss_fn(x, y)
+    loss.backward()
+    return loss.detach(), [p.grad.clone() for p in model.parameters()]
+
+
+@pytest.mark.parametrize(
+    "net",
+    [
+        lambda: torch.nn.Sequential(
+            torch.nn.Linear(4, 16),
+            torch.nn.ReLU(),
+            torch.nn.Linear(16, 16),
+            torch.nn.ReLU(),
+            torch.nn.Linear(16, 4),
+        ),
+        lambda: torch.nn.Sequential(
+            torch.nn.Linear(4, 16), torch.nn.Tanh(), torch.nn.Linear(16, 4)
+        ),
+        lambda: torch.nn.Sequential(
+            torch.nn.Linear(4, 16), torch.nn.ReLU(), torch.nn.ReLU(), torch.nn.Linear(16, 4)
+        ),
+        lambda: torch.nn.Sequential(torch.nn.ReLU(), torch.nn.Linear(4, 4)),
+    ],
+    ids=["relu-mlp", "tanh", "relu-relu", "relu-first"],
+)
+def test_scaled_loss_fast_path_is_bit_identical(net):
+    """The in-place ReLU forward gives the stock ``net(x)`` loss and gradients bit for bit."""
+    torch.manual_seed(0)
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+    model.net = net()
+    loss = DynamicsLoss(model)
+    x, y = torch.randn(64, 4), torch.randn(64, 4)
+    x_before = x.clone()
+    fast = _grads_of(model, x, y, loss.scaled_loss)
+    stock = _grads_of(model, x, y, lambda a, b: torch.nn.functional.mse_loss(model.net(a), b))
+    assert torch.equal(x, x_before)  # the input is never written to
+    assert torch.equal(fast[0], stock[0])
+    for g_fast, g_stock in zip(fast[1], stock[1], strict=True):
+        assert torch.equal(g_fast, g_stock)
+    with torch.no_grad():
+        assert torch.equal(loss.scaled_loss(x, y), stock[0])
+
+
+def test_scaled_loss_calls_forward_hooks():
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+    calls = []
+    model.net[1].register_forward_hook(lambda *args: calls.append(1))
+    DynamicsLoss(model).scaled_loss(torch.randn(5, 4), torch.randn(5, 4))
+    assert calls == [1]
