@@ -779,9 +779,11 @@ class Trainer:
                 t_update = time.perf_counter()
                 if self.ppo:
                     self.ppo_update(batch)
+                    # no refit once the planning phase is over: nothing plans with it again
                     refit = (
                         phase == "planning"
                         and self.progress["updates"] % int(cfg.world_model.refit_every) == 0
+                        and not self._planning_done()
                     )
                 else:
                     self.sac_update(batch)
