@@ -67,7 +67,7 @@ def test_every_config_composes(group):
     [
         ("ppo", []),
         ("ppo", ["ppo.update=stock", "collector=stock"]),
-        ("ppo", ["ppo.update=fused_autograd"]),
+        ("ppo", ["ppo.update=fused_autograd", "eval_episodes=0"]),
         ("sac_mpc", ["device=auto"]),  # the GPU where torch sees one
         ("mpc", []),
         ("ppo_mpc", ["env.num_envs=2", "checkpoint.every_steps=100000", "total_steps=1100"]),
@@ -94,6 +94,10 @@ def test_method_smoke_run(tmp_path, method, extra):
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads((run / "summary.json").read_text())
     assert summary["real_steps"] >= 900
+    if "eval_episodes=0" in extra:  # no evaluation: no eval rows, no NaN return
+        assert summary["final_eval_return"] is None
+        assert not (run / "logs" / "scalars" / "eval" / "return.csv").exists()
+    assert set(summary["time_breakdown"]) == {"env_s", "act_s", "update_s", "refit_s", "other_s"}
     if method in ("mpc", "ppo_mpc", "sac_mpc"):
         assert summary["random_steps"] == 300
     if method in ("mpc", "ppo_mpc"):

@@ -24,7 +24,7 @@ def _compose(*overrides: str):
     [
         (["ppo.gamma=5"], "ppo.gamma must be a number in (0, 1], got 5"),
         (["sac.gamma=0"], "sac.gamma must be a number in (0, 1], got 0"),
-        (["eval_episodes=0"], "eval_episodes must be an integer >= 1, got 0"),
+        (["eval_episodes=-1"], "eval_episodes must be an integer >= 0, got -1"),
         (["sac.utd_ratio=-1"], "sac.utd_ratio must be a number > 0, got -1"),
         (["sac.init_random_frames=-5"], "sac.init_random_frames must be an integer >= 0, got -5"),
         (["seed=-1"], "seed must be an integer in [0, 4294967295], got -1"),

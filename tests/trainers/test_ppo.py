@@ -6,6 +6,7 @@ import copy
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.objectives.value import GAE
 
 from torchrl_mbmf.trainers.ppo import PPO_STATS, FusedPPOUpdate, make_test_ppo, ppo_update
@@ -207,3 +208,25 @@ def test_env_rollout_with_truncation_matches_stock():
     assert fused(batch.clone()) == stock
     for a, b in zip(loss_a.parameters(), loss_b.parameters(), strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("gradients", ["manual", "autograd"])
+def test_samplers_see_the_updated_policy(gradients):
+    """Caches keyed on parameter versions (the planner's and collector's actor path) follow."""
+    from torchrl_mbmf.modules.planners.sampling import ActorSampler
+
+    torch.manual_seed(0)
+    loss, gae, batch = make_test_ppo(frames=64)
+    optim = torch.optim.Adam(loss.parameters(), lr=1e-2)
+    update = FusedPPOUpdate(loss, gae, optim, epochs=2, minibatch_size=16, gradients=gradients)
+    actor = loss.actor_network
+    sampler = ActorSampler(actor)
+    obs = torch.randn(4, batch["observation"].shape[-1])
+    for _ in range(3):
+        update(batch.clone())
+        with torch.no_grad():
+            td = actor.module[0](TensorDict(observation=obs, batch_size=[4]))
+            fn, _ = sampler.tight_params()
+            loc, scale = fn(obs)
+        torch.testing.assert_close(loc, td["loc"], rtol=0, atol=0)
+        torch.testing.assert_close(scale.expand_as(td["scale"]), td["scale"], rtol=0, atol=0)

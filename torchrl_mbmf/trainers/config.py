@@ -158,7 +158,7 @@ TRAIN_SETTINGS: dict[str, Setting] = {
     "total_steps": _int(1),
     "planning_updates": _int(0),
     "eval_every": _int(1),
-    "eval_episodes": _int(1),
+    "eval_episodes": _int(0),  # 0: no evaluation (final_eval_return is null)
     "checkpoint.every_steps": _int(1),
     "checkpoint.keep_last": _int(1),
     "progress": Setting("bool"),

@@ -804,7 +804,8 @@ class Trainer:
                     }
                 )
                 if self.progress["real_steps"] >= self.progress["next_eval"]:
-                    self.log({"eval/return": self.evaluate()})
+                    if int(cfg.eval_episodes) > 0:
+                        self.log({"eval/return": self.evaluate()})
                     self.progress["next_eval"] += int(cfg.eval_every)
                 t_wait = time.perf_counter()
                 checkpoint_due = self.progress["real_steps"] >= self.progress["next_checkpoint"]
@@ -834,7 +835,7 @@ class Trainer:
             "last10_mean_return": float(np.mean(self.progress["last_returns"]))
             if self.progress["last_returns"]
             else None,
-            "final_eval_return": self.evaluate(),
+            "final_eval_return": self.evaluate() if int(cfg.eval_episodes) > 0 else None,
             "params_sha256": self.parameters_digest(),
             "seconds": time.perf_counter() - start,
             "resumed": self.resumed,

@@ -542,6 +542,12 @@ class FusedPPOUpdate:
                 )
         if flat is not None:
             flat.write_steps()
+            # The parameters are views of the flat buffer, whose in-place updates leave the
+            # parameters' own version counters alone: bump them, so that caches keyed on them
+            # (ActorSampler.tight_params' constant scale, any version-keyed snapshot) see the
+            # new weights.
+            for p in self.params:
+                torch.autograd.graph.increment_version(p)
         rows = torch.stack(stats).tolist()
         sums = [0.0] * len(PPO_STATS)
         for row in rows:
