@@ -281,9 +281,7 @@ class ActorSampler:
             >>> action.shape, loc.shape
             (torch.Size([1]), torch.Size([1]))
         """
-        params = self._tight_at(observation)
-        if params is None:
-            params = tuple(self._params_fn(observation))
+        params = tuple(self._params_fn(observation))
         return self._sample(params), params
 
     def _sample(self, params: tuple[torch.Tensor, ...]) -> torch.Tensor:
