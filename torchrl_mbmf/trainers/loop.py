@@ -286,7 +286,7 @@ class Trainer:
                     epochs=int(c.epochs),
                     minibatch_size=int(c.minibatch_size),
                     max_grad_norm=float(c.max_grad_norm),
-                    gradients="manual" if c.update == "fused" else "autograd",
+                    gradients="manual" if c["update"] == "fused" else "autograd",
                 )
         else:
             c = cfg.sac
@@ -304,7 +304,7 @@ class Trainer:
             self.loss.to(self.device)
             self.loss.make_value_estimator(gamma=float(c.gamma))
             self.target_updater = SoftUpdate(self.loss, tau=float(c.tau))
-            fused = c.update == "fused"
+            fused = c.get("update", "stock") == "fused"
             # the fused path also uses torch's fused Adam (same update up to float rounding)
             self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(c.lr), fused=fused)
             self.replay = TensorDictReplayBuffer(

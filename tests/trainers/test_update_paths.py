@@ -1,0 +1,41 @@
+"""The ``ppo.update`` and ``sac.update`` settings pick the update path the trainer runs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from torchrl_mbmf.trainers import FusedPPOUpdate, FusedSACUpdate, Trainer
+
+CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
+
+
+def _trainer(tmp_path: Path, *overrides: str) -> Trainer:
+    with initialize_config_dir(CONFIGS, version_base="1.3"):
+        cfg = compose("train", overrides=["env=pendulum", "progress=false", *overrides])
+    return Trainer(cfg, tmp_path / "run")
+
+
+@pytest.mark.parametrize(
+    ("update", "gradients"), [(None, "manual"), ("fused_autograd", "autograd"), ("stock", None)]
+)
+def test_ppo_update_setting(tmp_path, update, gradients):
+    extra = [] if update is None else [f"ppo.update={update}"]
+    trainer = _trainer(tmp_path, "method=ppo", *extra)
+    if gradients is None:
+        assert trainer.ppo_step is None
+    else:
+        assert isinstance(trainer.ppo_step, FusedPPOUpdate)
+        assert trainer.ppo_step.gradients == gradients
+
+
+@pytest.mark.parametrize("update", [None, "stock"])
+def test_sac_update_setting(tmp_path, update):
+    extra = [] if update is None else [f"sac.update={update}"]
+    trainer = _trainer(tmp_path, "method=sac", *extra)
+    fused = update is None  # the default is the fused update
+    assert isinstance(trainer.sac_step, FusedSACUpdate) == fused
+    assert (trainer.replay_sampler is not None) == fused
+    assert bool(trainer.optim.defaults.get("fused")) == fused
