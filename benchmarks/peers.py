@@ -408,10 +408,9 @@ def main() -> None:
         "fresh process; alternated ours, SB3 per repetition. steps/s = real env steps / training "
         f"wall time (ours: summary.json seconds with eval_episodes={args.eval_episodes} and the "
         "final checkpoint; SB3: .learn, which neither evaluates nor saves). SAC: "
-        "ours updates after each 1000-step batch once init_random_frames are collected (the "
-        "batch that reaches them included), SB3 after every env step past learning_starts, so "
-        "their gradient step counts differ slightly: see grad_steps. Shared machines: compare "
-        "ratios, not absolute rates."
+        "ours takes one update per frame past init_random_frames after each 1000-step batch, "
+        "SB3 one after every env step past learning_starts: the same gradient step counts "
+        "(grad_steps). Shared machines: compare ratios, not absolute rates."
     )
     extra = {
         "note": note,
