@@ -1,0 +1,291 @@
+"""Runs a queue of long training runs, one at a time per worker, resuming what was interrupted.
+
+    python scripts/campaign.py --root ../runs/thesis --queue results/campaign/queue.txt \
+        --results results/thesis/runs --stop-at 22:45 &     # one worker per core
+    python scripts/campaign.py --root ../runs/thesis --queue results/campaign/queue.txt --status
+
+Each queue line is ``<run name> <recipe> <overrides...>`` (``#`` starts a comment); the recipe is
+``train`` (``recipes/train.py``, which resumes from the run folder's latest checkpoint) or
+``sb3_reference`` (``recipes/sb3_reference.py``, which cannot resume: an interrupted SB3 run is
+started again from scratch, and only when the time left before ``--stop-at`` covers its expected
+length). A worker takes the first run that has no ``summary.json`` and no live claim, claims it
+(``<root>/.claims/<name>``, holding the worker's pid; a claim of a dead process is stale), runs
+it with one torch thread in ``<root>/<name>``, and when it finishes copies its small files
+(config, commit, machine, logs, summary, exported policy, train log, resume log) to
+``--results/<name>``, with the root's parent folder cut from the paths they mention, so that the
+copy can be committed. Every start, finish and failure is appended to ``<root>/campaign.log``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import fcntl
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPES = {"train": "recipes/train.py", "sb3_reference": "recipes/sb3_reference.py"}
+#: Files and folders of a finished run that are small enough to commit.
+SMALL_FILES = (
+    "config.yaml",
+    "git_commit.txt",
+    "machine.json",
+    "summary.json",
+    "policy.pt",
+    "resume_log.json",
+    "logs",
+    "train.log",
+    "sb3_reference.log",
+)
+#: Expected wall time of a non-resumable run (seconds, one core of a busy 2-core machine).
+SB3_EXPECTED_S = {"ppo": 50 * 60, "sac": 80 * 60}
+
+
+@dataclass(frozen=True)
+class QueuedRun:
+    """One line of the queue.
+
+    Args:
+        name: the run folder's name (equal to the recipe's ``run_name``: checked after the run).
+        recipe: ``train`` or ``sb3_reference``.
+        overrides: the recipe's Hydra overrides.
+    """
+
+    name: str
+    recipe: str
+    overrides: tuple[str, ...]
+
+    @property
+    def resumable(self) -> bool:
+        """Whether an interrupted run continues from a checkpoint (``train``) or restarts."""
+        return self.recipe == "train"
+
+
+def read_queue(path: Path) -> list[QueuedRun]:
+    r"""Parses a queue file.
+
+    Args:
+        path: the queue file.
+
+    Raises:
+        ValueError: a line names an unknown recipe, lacks one, or a name repeats.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> p = pathlib.Path(tempfile.mkdtemp()) / "q.txt"
+        >>> _ = p.write_text("# a comment\nrun_a train method=ppo seed=0\n")
+        >>> read_queue(p)[0].overrides
+        ('method=ppo', 'seed=0')
+    """
+    runs: list[QueuedRun] = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        words = shlex.split(line, comments=True)
+        if not words:
+            continue
+        if len(words) < 2 or words[1] not in RECIPES:
+            raise ValueError(
+                f"{path}:{number}: {line!r}: expected '<run name> <recipe> <overrides...>' "
+                f"with a recipe in {sorted(RECIPES)}"
+            )
+        if any(r.name == words[0] for r in runs):
+            raise ValueError(f"{path}:{number}: run {words[0]!r} is queued twice")
+        runs.append(QueuedRun(words[0], words[1], tuple(words[2:])))
+    return runs
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def claim_owner(root: Path, name: str) -> int | None:
+    """The pid of the live process that claimed a run, or ``None``.
+
+    Args:
+        root: the campaign's run root.
+        name: the run's name.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> claim_owner(pathlib.Path(tempfile.mkdtemp()), "run_a") is None
+        True
+    """
+    path = root / ".claims" / name
+    try:
+        pid = int(path.read_text().split()[0])
+    except (FileNotFoundError, ValueError, IndexError):
+        return None
+    return pid if _alive(pid) else None
+
+
+def run_state(root: Path, run: QueuedRun) -> str:
+    """``done``, ``running`` (a live claim), ``interrupted`` (a folder, no summary) or ``queued``.
+
+    Args:
+        root: the campaign's run root.
+        run: the queued run.
+    """
+    folder = root / run.name
+    if (folder / "summary.json").exists():
+        return "done"
+    if claim_owner(root, run.name) is not None:
+        return "running"
+    if (folder / "logs").exists():
+        return "interrupted"
+    return "queued"
+
+
+def _log(root: Path, **event: object) -> None:
+    event = {"time": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), **event}
+    with (root / "campaign.log").open("a") as f:
+        f.write(json.dumps(event) + "\n")
+
+
+def _seconds_left(stop_at: dt.datetime | None) -> float:
+    if stop_at is None:
+        return float("inf")
+    return (stop_at - dt.datetime.now(dt.UTC)).total_seconds()
+
+
+def claim_next(
+    root: Path,
+    queue: list[QueuedRun],
+    stop_at: dt.datetime | None,
+    skip: frozenset[str] = frozenset(),
+) -> QueuedRun | None:
+    """Claims the first run that is neither done nor running (atomically, under a lock).
+
+    A non-resumable run is passed over when it would not finish before ``stop_at``.
+
+    Args:
+        root: the campaign's run root.
+        queue: the queue, in priority order.
+        stop_at: when the machine's session ends (``None``: never).
+        skip: names to pass over (runs that failed in this worker).
+    """
+    (root / ".claims").mkdir(parents=True, exist_ok=True)
+    with (root / ".claims" / ".lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        for run in queue:
+            if run.name in skip or run_state(root, run) in ("done", "running"):
+                continue
+            if not run.resumable:
+                method = dict(o.split("=", 1) for o in run.overrides if "=" in o).get("method")
+                if _seconds_left(stop_at) < SB3_EXPECTED_S.get(str(method), 3600):
+                    continue
+            (root / ".claims" / run.name).write_text(f"{os.getpid()}\n")
+            return run
+    return None
+
+
+def copy_small_files(folder: Path, dest: Path, cut: str) -> None:
+    """Copies a run's small files to ``dest`` (replacing an older copy), cutting ``cut`` from paths.
+
+    Args:
+        folder: the run folder.
+        dest: where the copy goes (for example ``results/thesis/runs/<name>``).
+        cut: a path prefix to remove from the text files (the run root's parent folder).
+    """
+    if dest.exists():
+        shutil.rmtree(dest)
+    dest.mkdir(parents=True)
+    for name in SMALL_FILES:
+        src = folder / name
+        if src.is_dir():
+            shutil.copytree(src, dest / name)
+        elif src.exists():
+            shutil.copy2(src, dest / name)
+    for path in dest.rglob("*"):
+        if path.is_file() and path.suffix in (".yaml", ".json", ".txt", ".log", ".csv"):
+            text = path.read_text()
+            if cut in text:
+                path.write_text(text.replace(cut, ""))
+
+
+def run_one(root: Path, run: QueuedRun, results: Path | None, restart: bool) -> int:
+    """Runs (or resumes) one queued run in ``root/<name>``; returns the recipe's exit code.
+
+    Args:
+        root: the campaign's run root.
+        run: the run.
+        results: where to copy its small files when it finishes (``None``: nowhere).
+        restart: pass ``restart=true`` (an interrupted non-resumable run).
+    """
+    folder = root / run.name
+    cmd = [
+        sys.executable,
+        str(ROOT / RECIPES[run.recipe]),
+        *run.overrides,
+        "threads=1",
+        f"run_dir={folder}",
+    ]
+    if run.recipe == "train":
+        cmd.append("progress=false")
+    if restart:
+        cmd.append("restart=true")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        env[var] = "1"
+    _log(root, event="start", run=run.name, cmd=" ".join(cmd[1:]), restart=restart)
+    start = time.time()
+    with (root / f"{run.name}.out").open("a") as out:
+        code = subprocess.call(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
+    _log(root, event="exit", run=run.name, code=code, wall_s=round(time.time() - start, 1))
+    if code == 0 and (folder / "summary.json").exists():
+        config = (folder / "config.yaml").read_text()
+        if f"run_name: {run.name}\n" not in config:
+            _log(root, event="warning", run=run.name, what="config run_name differs from name")
+        if results is not None:
+            copy_small_files(folder, results / run.name, str(root.parent) + os.sep)
+            _log(root, event="copied", run=run.name, to=str(results / run.name))
+    return code
+
+
+def main() -> None:
+    """Command line: one worker, or ``--status``."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--root", type=Path, required=True, help="run folders (outside git)")
+    parser.add_argument("--queue", type=Path, required=True, help="the queue file")
+    parser.add_argument("--results", type=Path, help="copy finished runs' small files here")
+    parser.add_argument("--stop-at", help="HH:MM UTC when the session ends (today)")
+    parser.add_argument("--status", action="store_true", help="print each run's state")
+    args = parser.parse_args()
+    root = args.root.resolve()
+    queue = read_queue(args.queue)
+    if args.status:
+        for run in queue:
+            print(f"{run_state(root, run):12s} {run.name}")
+        return
+    stop_at = None
+    if args.stop_at:
+        hour, minute = (int(x) for x in args.stop_at.split(":"))
+        now = dt.datetime.now(dt.UTC)
+        stop_at = now.replace(hour=hour, minute=minute, second=0, microsecond=0)
+        if stop_at < now:
+            raise SystemExit(f"--stop-at {args.stop_at} is already past ({now:%H:%M} UTC)")
+    failed: set[str] = set()
+    while (run := claim_next(root, queue, stop_at, frozenset(failed))) is not None:
+        restart = not run.resumable and (root / run.name / "logs").exists()
+        code = run_one(root, run, args.results, restart)
+        (root / ".claims" / run.name).unlink(missing_ok=True)
+        if code != 0:
+            failed.add(run.name)
+            if len(failed) >= 3:
+                raise SystemExit("three runs failed: stopping this worker (see campaign.log)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""scripts/campaign.py: which run a worker takes next, and what it copies for committing."""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+_spec = importlib.util.spec_from_file_location("campaign", ROOT / "scripts" / "campaign.py")
+campaign = importlib.util.module_from_spec(_spec)
+sys.modules["campaign"] = campaign
+_spec.loader.exec_module(campaign)
+
+QUEUE = """\
+# priority order
+a train method=ppo seed=0
+b sb3_reference method=sac seed=0
+c train method=sac seed=0   # trailing comment
+"""
+
+
+def _queue(tmp_path: Path, text: str = QUEUE) -> list:
+    path = tmp_path / "queue.txt"
+    path.write_text(text)
+    return campaign.read_queue(path)
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_queue_lines_parse_and_bad_ones_are_named(tmp_path):
+    queue = _queue(tmp_path)
+    assert [(r.name, r.recipe, r.overrides) for r in queue] == [
+        ("a", "train", ("method=ppo", "seed=0")),
+        ("b", "sb3_reference", ("method=sac", "seed=0")),
+        ("c", "train", ("method=sac", "seed=0")),
+    ]
+    assert [r.resumable for r in queue] == [True, False, True]
+    with pytest.raises(ValueError, match=r"queue.txt:1: 'x fit seed=0'.*recipe"):
+        _queue(tmp_path, "x fit seed=0\n")
+    with pytest.raises(ValueError, match=r"queue.txt:2: run .a. is queued twice"):
+        _queue(tmp_path, "a train\na train seed=1\n")
+
+
+def test_worker_takes_the_first_run_neither_done_nor_claimed_by_a_live_process(tmp_path):
+    root = tmp_path / "runs"
+    queue = _queue(tmp_path)
+    (root / "a").mkdir(parents=True)
+    (root / "a" / "summary.json").write_text("{}")  # done
+    assert campaign.run_state(root, queue[0]) == "done"
+    first = campaign.claim_next(root, queue, None)
+    assert first.name == "b"
+    assert campaign.claim_owner(root, "b") == os.getpid()
+    assert campaign.run_state(root, queue[1]) == "running"
+    assert campaign.claim_next(root, queue, None).name == "c"
+    assert campaign.claim_next(root, queue, None) is None  # every run done or running
+    # a claim left by a process that died (an interrupted session) is taken again
+    (root / ".claims" / "c").write_text(f"{_dead_pid()}\n")
+    (root / "c" / "logs").mkdir(parents=True)
+    assert campaign.run_state(root, queue[2]) == "interrupted"
+    assert campaign.claim_next(root, queue, None).name == "c"
+
+
+def test_failed_runs_and_unresumable_runs_without_time_are_passed_over(tmp_path):
+    root = tmp_path / "runs"
+    queue = _queue(tmp_path)
+    soon = dt.datetime.now(dt.UTC) + dt.timedelta(minutes=10)
+    # b (SB3 SAC) cannot resume and would not finish in 10 minutes: c goes first
+    assert campaign.claim_next(root, queue, soon, frozenset({"a"})).name == "c"
+    (root / ".claims" / "c").unlink()
+    later = dt.datetime.now(dt.UTC) + dt.timedelta(hours=3)
+    assert campaign.claim_next(root, queue, later, frozenset({"a"})).name == "b"
+
+
+def test_small_files_are_copied_without_the_machines_paths(tmp_path):
+    root = tmp_path / "far" / "runs"
+    run = root / "r"
+    (run / "logs" / "scalars" / "train").mkdir(parents=True)
+    (run / "checkpoints" / "checkpoint-1").mkdir(parents=True)
+    (run / "checkpoints" / "checkpoint-1" / "big.bin").write_bytes(b"x")
+    (run / "config.yaml").write_text(f"run_dir: {run}\nseed: 0\n")
+    (run / "train.log").write_text(f"resumed from {run}/checkpoints/checkpoint-1\n")
+    (run / "logs" / "scalars" / "train" / "episode_return.csv").write_text("1000,5.0\n")
+    (run / "policy.pt").write_bytes(b"\x00\x01")
+    dest = tmp_path / "results" / "r"
+    dest.mkdir(parents=True)
+    (dest / "stale.txt").write_text("an older copy")
+    campaign.copy_small_files(run, dest, str(root.parent) + os.sep)
+    assert (dest / "config.yaml").read_text() == "run_dir: runs/r\nseed: 0\n"
+    assert (dest / "train.log").read_text() == "resumed from runs/r/checkpoints/checkpoint-1\n"
+    assert (dest / "logs/scalars/train/episode_return.csv").read_text() == "1000,5.0\n"
+    assert (dest / "policy.pt").read_bytes() == b"\x00\x01"
+    assert not (dest / "checkpoints").exists() and not (dest / "stale.txt").exists()
