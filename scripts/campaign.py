@@ -14,6 +14,9 @@ it with one torch thread in ``<root>/<name>``, and when it finishes copies its s
 (config, commit, machine, logs, summary, exported policy, train log, resume log) to
 ``--results/<name>``, with the root's parent folder cut from the paths they mention, so that the
 copy can be committed. Every start, finish and failure is appended to ``<root>/campaign.log``.
+``--snapshot`` (at a session's end) copies unfinished runs the same way, with their latest
+checkpoint where it is small (PPO); a worker on a machine that lacks such a run's folder
+restores it from that copy and resumes it.
 """
 
 from __future__ import annotations
@@ -45,6 +48,9 @@ SMALL_FILES = (
     "train.log",
     "sb3_reference.log",
 )
+#: Largest checkpoint committed with a partial run (PPO's are about 0.6 MB; a model-based one holds
+#: its dataset and a SAC one its replay buffer, tens of MB: those are not committed).
+SMALL_CHECKPOINT_BYTES = 5 * 2**20
 #: Expected wall time of a non-resumable run (seconds, one core of a busy 2-core machine).
 SB3_EXPECTED_S = {"ppo": 50 * 60, "sac": 80 * 60}
 
@@ -215,6 +221,77 @@ def copy_small_files(folder: Path, dest: Path, cut: str) -> None:
                 path.write_text(text.replace(cut, ""))
 
 
+def _size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def latest_checkpoint(folder: Path) -> Path | None:
+    """The newest ``checkpoints/checkpoint-*`` folder of a run (``None`` without one).
+
+    Args:
+        folder: the run folder.
+    """
+    found = sorted((folder / "checkpoints").glob("checkpoint-*"))
+    return found[-1] if found else None
+
+
+def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
+    """Copies every unfinished run's small files, and its latest checkpoint when small, to commit.
+
+    The partial copy goes to ``results/<name>`` like a finished one; a checkpoint of at most
+    :data:`SMALL_CHECKPOINT_BYTES` goes with it (``results/<name>/checkpoints/``), so that
+    :func:`restore` can continue the run on a machine that lacks its folder.
+
+    Args:
+        root: the campaign's run root.
+        queue: the queue.
+        results: where finished runs' small files go.
+
+    Returns:
+        The names copied.
+    """
+    copied = []
+    for run in queue:
+        folder = root / run.name
+        if run_state(root, run) == "done" or not (folder / "logs").exists():
+            continue
+        dest = results / run.name
+        copy_small_files(folder, dest, str(root.parent) + os.sep)
+        latest = latest_checkpoint(folder)
+        if latest is not None and _size(latest) <= SMALL_CHECKPOINT_BYTES:
+            shutil.copytree(latest, dest / "checkpoints" / latest.name)
+        copied.append(run.name)
+    return copied
+
+
+def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
+    """Recreates the folders of unfinished runs whose committed copy holds a checkpoint.
+
+    Only where ``root`` lacks the run's folder (a fresh machine): the committed small files and
+    checkpoint are copied into ``root/<name>``, and the run resumes from that checkpoint (its
+    logs are cut back to it on resume, as after any interruption).
+
+    Args:
+        root: the campaign's run root.
+        queue: the queue.
+        results: where the committed copies are.
+
+    Returns:
+        The names restored.
+    """
+    restored = []
+    for run in queue:
+        copy = results / run.name
+        if (root / run.name).exists() or (copy / "summary.json").exists():
+            continue
+        if latest_checkpoint(copy) is None:
+            continue
+        shutil.copytree(copy, root / run.name)
+        _log(root, event="restored", run=run.name, checkpoint=latest_checkpoint(copy).name)
+        restored.append(run.name)
+    return restored
+
+
 def run_one(root: Path, run: QueuedRun, results: Path | None, restart: bool) -> int:
     """Runs (or resumes) one queued run in ``root/<name>``; returns the recipe's exit code.
 
@@ -239,7 +316,10 @@ def run_one(root: Path, run: QueuedRun, results: Path | None, restart: bool) -> 
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         env[var] = "1"
-    _log(root, event="start", run=run.name, cmd=" ".join(cmd[1:]), restart=restart)
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
+    _log(root, event="start", run=run.name, commit=commit, restart=restart)
     start = time.time()
     with (root / f"{run.name}.out").open("a") as out:
         code = subprocess.call(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
@@ -254,6 +334,66 @@ def run_one(root: Path, run: QueuedRun, results: Path | None, restart: bool) -> 
     return code
 
 
+def _events(root: Path) -> list[dict]:
+    path = root / "campaign.log"
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _last_step(folder: Path) -> int:
+    summary = folder / "summary.json"
+    if summary.exists():
+        return int(json.loads(summary.read_text())["real_steps"])
+    path = folder / "logs" / "scalars" / "train" / "episode_return.csv"
+    if not path.exists():
+        return 0
+    rows = [line.split(",")[0] for line in path.read_text().splitlines() if line.strip()]
+    return int(float(rows[-1])) if rows else 0
+
+
+def ledger_table(root: Path, queue: list[QueuedRun], results: Path | None) -> str:
+    """The markdown table of every queued run: state, steps, budget, commits, segments, wall time.
+
+    A run's folder is looked up in ``root`` and, where ``root`` lacks it, in ``results`` (the
+    committed copy). Segments and wall time come from ``root/campaign.log`` (the worker's
+    starts and exits; a run started by hand before the campaign log existed shows none).
+
+    Args:
+        root: the campaign's run root.
+        queue: the queue.
+        results: where the committed copies are (``None``: only ``root``).
+    """
+    events = _events(root)
+    lines = [
+        "| run | state | real steps | budget | checkpoint | commits | segments | wall (min) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for run in queue:
+        folder = root / run.name
+        if not folder.exists() and results is not None:
+            folder = results / run.name
+        state = run_state(root, run) if (root / run.name).exists() else "queued"
+        if not (root / run.name).exists() and (folder / "logs").exists():
+            # only the committed copy: done, or lost with the machine (restarts from 0)
+            state = "done" if (folder / "summary.json").exists() else "lost, restarts"
+        overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
+        budget = overrides.get("total_steps", "1000000")
+        mine = [e for e in events if e.get("run") == run.name]
+        starts = [e for e in mine if e["event"] == "start"]
+        commits = sorted({e["commit"] for e in starts if e.get("commit")})
+        if (folder / "git_commit.txt").exists():
+            commits = commits or [(folder / "git_commit.txt").read_text().strip()[:7]]
+        wall = sum(float(e.get("wall_s", 0)) for e in mine if e["event"] == "exit")
+        latest = latest_checkpoint(folder)
+        lines.append(
+            f"| {run.name} | {state} | {_last_step(folder):,} | {int(budget):,} | "
+            f"{latest.name.removeprefix('checkpoint-').lstrip('0') if latest else '-'} | "
+            f"{', '.join(commits) or '-'} | {len(starts)} | {wall / 60:.0f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     """Command line: one worker, or ``--status``."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -262,13 +402,35 @@ def main() -> None:
     parser.add_argument("--results", type=Path, help="copy finished runs' small files here")
     parser.add_argument("--stop-at", help="HH:MM UTC when the session ends (today)")
     parser.add_argument("--status", action="store_true", help="print each run's state")
+    parser.add_argument(
+        "--snapshot", action="store_true", help="copy unfinished runs to --results, then exit"
+    )
+    parser.add_argument("--ledger", type=Path, help="write the run table into this markdown file")
     args = parser.parse_args()
     root = args.root.resolve()
+    root.mkdir(parents=True, exist_ok=True)
     queue = read_queue(args.queue)
     if args.status:
         for run in queue:
             print(f"{run_state(root, run):12s} {run.name}")
         return
+    if args.ledger is not None:
+        text = args.ledger.read_text() if args.ledger.exists() else ""
+        begin, end = "<!-- campaign table -->", "<!-- end campaign table -->"
+        table = f"{begin}\n{ledger_table(root, queue, args.results)}{end}"
+        if begin in text and end in text:
+            text = text[: text.index(begin)] + table + text[text.index(end) + len(end) :]
+        else:
+            text = text + "\n" + table + "\n"
+        args.ledger.write_text(text)
+        return
+    if args.snapshot:
+        if args.results is None:
+            raise SystemExit("--snapshot needs --results")
+        print("\n".join(snapshot(root, queue, args.results)))
+        return
+    if args.results is not None:
+        restore(root, queue, args.results)
     stop_at = None
     if args.stop_at:
         hour, minute = (int(x) for x in args.stop_at.split(":"))

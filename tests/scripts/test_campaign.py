@@ -100,3 +100,39 @@ def test_small_files_are_copied_without_the_machines_paths(tmp_path):
     assert (dest / "logs/scalars/train/episode_return.csv").read_text() == "1000,5.0\n"
     assert (dest / "policy.pt").read_bytes() == b"\x00\x01"
     assert not (dest / "checkpoints").exists() and not (dest / "stale.txt").exists()
+
+
+def _partial_run(root: Path, name: str, checkpoint_bytes: int) -> None:
+    run = root / name
+    (run / "logs" / "scalars" / "train").mkdir(parents=True)
+    (run / "logs" / "scalars" / "train" / "episode_return.csv").write_text("1000,5.0\n2000,6.0\n")
+    (run / "config.yaml").write_text(f"run_dir: {run}\n")
+    for step in (1000, 2000):
+        ckpt = run / "checkpoints" / f"checkpoint-{step:012d}"
+        ckpt.mkdir(parents=True)
+        (ckpt / "state.bin").write_bytes(b"x" * checkpoint_bytes)
+
+
+def test_snapshot_keeps_small_checkpoints_and_a_fresh_machine_restores_them(tmp_path):
+    root = tmp_path / "machine1" / "runs"
+    results = tmp_path / "results"
+    queue = _queue(tmp_path)
+    _partial_run(root, "a", 100)  # a PPO-sized checkpoint
+    _partial_run(root, "c", campaign.SMALL_CHECKPOINT_BYTES + 1)  # holds a dataset
+    assert campaign.snapshot(root, queue, results) == ["a", "c"]
+    assert [p.name for p in (results / "a" / "checkpoints").iterdir()] == [
+        "checkpoint-000000002000"
+    ]
+    assert not (results / "c" / "checkpoints").exists()
+    assert (results / "c" / "logs/scalars/train/episode_return.csv").exists()
+    fresh = tmp_path / "machine2" / "runs"
+    fresh.mkdir(parents=True)
+    assert campaign.restore(fresh, queue, results) == ["a"]
+    restored = fresh / "a" / "checkpoints" / "checkpoint-000000002000" / "state.bin"
+    assert restored.read_bytes() == b"x" * 100
+    assert campaign.restore(fresh, queue, results) == []  # never over an existing folder
+    table = campaign.ledger_table(fresh, queue, results)
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines()[2:]}
+    assert "| interrupted | 2,000 | 1,000,000 | 2000 |" in rows["a"]
+    assert "| lost, restarts | 2,000 | 1,000,000 | - |" in rows["c"]  # committed logs only
+    assert "| queued | 0 |" in rows["b"]
