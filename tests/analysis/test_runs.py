@@ -238,3 +238,26 @@ def test_each_ablation_variant_is_compared_at_its_own_common_step(tmp_path):
     report = write_report({"short": tmp_path / "out"}, tmp_path / "REPORT.md")
     assert "| cem | 4,000 |" in report and "| value | 2,000 |" in report
     assert "| cem | 6.0 [5.0, 7.0] (n=3) | - |" in report
+
+
+def test_sb3_references_are_compared_with_ours_and_kept_out_of_the_thesis_tables(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        make_run(runs, "ppo", seed, [0.0, 10.0, 20.0 + seed])
+        make_run(runs, "ppo_mpc", seed, [5.0, 15.0, 25.0 + seed])
+        make_run(runs, "sb3_ppo", seed, [0.0, 40.0, 60.0 + seed], horizon=0)
+        make_run(runs, "sac", seed, [0.0, 50.0, 90.0 + seed])
+        make_run(runs, "sac_mpc", seed, [0.0, 50.0, 95.0 + seed])
+        make_run(runs, "sb3_sac", seed, [0.0, 50.0, 91.0 + seed], horizon=0)
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False)
+    ppo = analysis["sb3"]["ppo"]
+    assert ppo["complete"] and ppo["versus_reference"] == {"ppo": "lower"}
+    (row,) = [r for r in ppo["tables"]["all_steps"]["rows"] if r["label"] == "ppo"]
+    assert row["step"] is None  # our PPO never reached SB3's best here
+    assert analysis["sb3"]["sac"]["versus_reference"] == {"sac": "overlapping"}
+    # the thesis' comparisons hold only the thesis' methods
+    assert sorted(analysis["exp2"]["intervals"]) == ["ppo", "ppo_mpc"]
+    assert sorted(analysis["exp4"]["intervals"]) == ["sac", "sac_mpc"]
+    text = write_report({"thesis": tmp_path / "out"}, tmp_path / "REPORT.md")
+    assert "### Our baselines vs Stable-Baselines3" in text
+    assert "| sb3_sac | " in text

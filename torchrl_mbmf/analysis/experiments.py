@@ -32,6 +32,11 @@ DEFAULT_HORIZON = 10
 REWARDS = ("default", "head_pen", "shin_pen")
 
 
+#: Stable-Baselines3 reference runs (``recipes/sb3_reference.py``: method ``sb3_<algo>``) and
+#: their label on the figures of our PPO and SAC.
+SB3_REFERENCES = {"ppo": "sb3_ppo (Stable-Baselines3)", "sac": "sb3_sac (Stable-Baselines3)"}
+
+
 def _interval_dict(values: Sequence[float]) -> dict[str, Any] | None:
     if not values:
         return None
@@ -374,6 +379,19 @@ def analyze_experiments(
     )
     analysis["exp1"] = cmp1
 
+    # Stable-Baselines3 references (default reward; their configs have no planner: horizon 0).
+    references = {algo: sel(f"sb3_{algo}", horizon=0) for algo in SB3_REFERENCES}
+    analysis["sb3"] = {
+        algo: _comparison({f"sb3_{algo}": refs, algo: sel(algo)}, f"sb3_{algo}")
+        for algo, refs in references.items()
+    }
+
+    def with_reference(named: dict[str, list[Run]], algo: str, reward: str) -> dict:
+        """``named`` plus the SB3 reference curve (figures only: never in tables)."""
+        if reward != "default" or not references[algo]:
+            return named
+        return {**named, SB3_REFERENCES[algo]: references[algo]}
+
     # Experiment 2 (figures 11a/11b, table 10) and 3 (figures 12, 13) per reward.
     exp3: dict[str, Any] = {}
     for reward in REWARDS:
@@ -383,7 +401,7 @@ def analyze_experiments(
         cmp = _comparison(named, "ppo", budget=budget)
         if cmp.get("complete"):
             cmp["figure"] = _curves_figure(
-                named,
+                with_reference(named, "ppo", reward),
                 out_dir / f"exp2_{reward}_planning.png",
                 title=f"PPO, MPC and PPO-MPC, {reward} reward, planning phase",
                 hline=cmp["tables"]["all_steps"]["threshold"],
@@ -393,7 +411,11 @@ def analyze_experiments(
         finetuned = [r for r in named["ppo_mpc"] if r.switch_step and r.last_step > r.switch_step]
         if finetuned:
             cmp["finetune_figure"] = _curves_figure(
-                {"ppo": named["ppo"], "ppo_mpc (fine-tuned after the switch)": finetuned},
+                with_reference(
+                    {"ppo": named["ppo"], "ppo_mpc (fine-tuned after the switch)": finetuned},
+                    "ppo",
+                    reward,
+                ),
                 out_dir / f"exp2_{reward}_finetune.png",
                 title=f"PPO vs PPO-MPC with warm-start fine-tuning, {reward} reward",
                 vlines={"switch to pure PPO": float(finetuned[0].switch_step)},
@@ -424,7 +446,7 @@ def analyze_experiments(
     cmp4 = _comparison(exp4, "sac")
     if cmp4.get("complete"):
         cmp4["figure"] = _curves_figure(
-            exp4,
+            with_reference(exp4, "sac", "default"),
             out_dir / "exp4_sac.png",
             title="Experiment 4: SAC vs SAC-MPC (figure 17)",
             hline=cmp4["tables"]["all_steps"]["threshold"],

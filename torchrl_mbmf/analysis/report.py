@@ -248,6 +248,21 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
             )
     out += ["### Experiment 4: SAC vs SAC-MPC (figure 17)", ""]
     out += _comparison_md(analysis["exp4"], rel, "SAC vs SAC-MPC", THESIS["exp4"])
+    sb3 = analysis.get("sb3") or {}
+    if any(c.get("complete") for c in sb3.values()):
+        out += [
+            "### Our baselines vs Stable-Baselines3",
+            "",
+            "The same settings (`configs/algo`), budgets and seeds through Stable-Baselines3 "
+            "(`recipes/sb3_reference.py`); their curves are also on the experiment 2 and 4 "
+            "figures. Reference: SB3; a ratio below 1 means ours reached SB3's best in fewer "
+            "real steps.",
+            "",
+        ]
+        for algo, cmp in sb3.items():
+            if cmp.get("complete"):
+                out += [f"#### {algo}", ""]
+                out += _comparison_md(cmp, rel, f"{algo} vs Stable-Baselines3 {algo}", None)
     if analysis.get("ablation"):
         out += ["### Beyond the thesis: planner and model variants", ""]
         for method, abl in analysis["ablation"].items():
