@@ -7,13 +7,7 @@ from torchrl_mbmf.analysis.gait import (
     record_gait,
     render_states,
 )
-from torchrl_mbmf.analysis.horizon import (
-    HorizonError,
-    horizon_predictions,
-    horizon_table,
-    multistep_mse,
-    open_loop_rollout,
-)
+from torchrl_mbmf.analysis.horizon import horizon_predictions, horizon_table
 from torchrl_mbmf.analysis.plots import plot_curves, plot_gait_comparison, save_image
 from torchrl_mbmf.analysis.report import write_report
 from torchrl_mbmf.analysis.runs import (
@@ -35,6 +29,7 @@ from torchrl_mbmf.analysis.stats import (
     iqm,
     rolling_window_stats,
 )
+from torchrl_mbmf.objectives.open_loop import HorizonError, multistep_mse, open_loop_rollout
 
 __all__ = [
     "Curve",

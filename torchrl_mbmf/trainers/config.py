@@ -186,6 +186,7 @@ TRAIN_SETTINGS: dict[str, Setting] = {
     "world_model.ensemble_size": _int(1, **_OPTIONAL),
     "world_model.probabilistic": Setting("bool", **_OPTIONAL),
     "world_model.adaptive_horizon": Setting("bool", **_OPTIONAL),
+    "world_model.save_fits": Setting("bool", **_OPTIONAL),
     "world_model.disagreement_quantile": Setting(
         "float", 0, 1, low_open=True, high_open=True, required=False
     ),
@@ -528,6 +529,7 @@ RESUME_SAFE_SETTINGS: tuple[str, ...] = (
     "eval_every",
     "eval_episodes",
     "checkpoint.keep_last",
+    "world_model.save_fits",
     "run_dir",
     "run_name",
     "budget.name",

@@ -62,6 +62,7 @@ from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.dynamics import _transition_tensors, fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.export import save_policy
+from torchrl_mbmf.trainers.fit_records import heldout_open_loop_errors, save_fit_snapshot
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.trainers.resume_logs import append_resume_log, cut_csv_logs
@@ -536,8 +537,16 @@ class Trainer:
     def refit_model(self) -> None:
         """Refits the world model on every real transition so far."""
         wm = self.cfg.world_model
-        start = time.perf_counter()
         seed = int(self.cfg.seed) + self.progress["updates"]
+        # The model being replaced, on the policy's transitions it never trained on (own
+        # generator: no training number changes).
+        since = self.progress.get("last_fit_transitions")
+        heldout = {}
+        if since is not None and isinstance(self.model, DeltaDynamicsModel):
+            heldout = heldout_open_loop_errors(
+                self.model, self.dataset, since=int(since), seed=int(self.cfg.seed)
+            )
+        start = time.perf_counter()
         if isinstance(self.model, EnsembleDeltaDynamicsModel):
             history = fit_ensemble(
                 self.model,
@@ -580,9 +589,12 @@ class Trainer:
             self.progress["disagreement_threshold"] = float(calibration.threshold)
             self.planner.disagreement_threshold = float(calibration.threshold)
             scalars["model/disagreement_threshold"] = float(calibration.threshold)
+        self.progress["last_fit_transitions"] = len(self.dataset)
+        if wm.get("save_fits", True):
+            save_fit_snapshot(self.model, self.run_dir, len(self.dataset))
         scalars["time/model_fit_s"] = time.perf_counter() - start
         self.times["refit_s"] += scalars["time/model_fit_s"]
-        self.log(scalars)
+        self.log({**heldout, **scalars})
 
     @staticmethod
     def _ensemble_stats(batch: TensorDictBase) -> dict[str, torch.Tensor]:
