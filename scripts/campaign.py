@@ -214,6 +214,10 @@ def copy_small_files(folder: Path, dest: Path, cut: str) -> None:
             shutil.copytree(src, dest / name)
         elif src.exists():
             shutil.copy2(src, dest / name)
+    # the world-model fit snapshots stay (about 1.1 MB each); records computed from them go
+    for record in sorted((folder / "world_models").glob("*.json")):
+        (dest / "world_models").mkdir(exist_ok=True)
+        shutil.copy2(record, dest / "world_models" / record.name)
     for path in dest.rglob("*"):
         if path.is_file() and path.suffix in (".yaml", ".json", ".txt", ".log", ".csv"):
             text = path.read_text()
