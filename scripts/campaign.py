@@ -1,8 +1,8 @@
 """Runs a queue of long training runs, one at a time per worker, resuming what was interrupted.
 
-    python scripts/campaign.py --root ../runs/thesis --queue results/campaign/queue.txt \
+    python scripts/campaign.py --root ../runs/campaign --queue results/campaign/queue.txt \
         --results results/thesis/runs --stop-at 22:45 &     # one worker per core
-    python scripts/campaign.py --root ../runs/thesis --queue results/campaign/queue.txt --status
+    python scripts/campaign.py --root ../runs/campaign --queue results/campaign/queue.txt --status
 
 Each queue line is ``<run name> <recipe> <overrides...>`` (``#`` starts a comment); the recipe is
 ``train`` (``recipes/train.py``, which resumes from the run folder's latest checkpoint) or

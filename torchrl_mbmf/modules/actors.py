@@ -69,8 +69,10 @@ def make_ppo_actor_critic(
         hidden_sizes: hidden widths of both networks. Defaults to ``(64, 64)``.
         activation: hidden activation. Defaults to :class:`torch.nn.ReLU`.
         distribution: ``"tanh_normal"`` (a TanhNormal: actions inside the bounds, exact
-            log-prob of what runs) or ``"normal"`` (the thesis' Gaussian with a tanh-squashed
-            mean; the env clips actions). Defaults to ``"tanh_normal"``.
+            log-prob of what runs while the pre-tanh sample stays below float32's tanh
+            saturation) or ``"normal"`` (the thesis' Gaussian with a tanh-squashed mean; the
+            env clips actions; what ``configs/algo/ppo.yaml`` and so the recipes use). Defaults
+            to ``"tanh_normal"``.
         init_log_std: initial log std of the policy. Defaults to ``0.0``.
         observation_key: input key. Defaults to ``"observation"``.
         action_key: action key. Defaults to ``"action"``.
