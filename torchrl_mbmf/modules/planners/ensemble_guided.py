@@ -12,22 +12,14 @@ from tensordict.utils import NestedKey
 from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel, FusedEnsembleStep
+from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 from torchrl_mbmf.modules.planners.common import (
     Plan,
     discounted_return,
     expand_candidates,
     select_best,
 )
-from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
-
-
-class _CachedFusedEnsemble(CachedModelStep):
-    """:class:`CachedModelStep` for an ensemble: caches its :class:`FusedEnsembleStep`."""
-
-    def _build(self) -> FusedEnsembleStep:
-        return self.model.fused_members()
 
 
 @dataclass
@@ -185,8 +177,6 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
             None if disagreement_threshold is None else float(disagreement_threshold)
         )
         self.ensemble: EnsembleDeltaDynamicsModel = env.dynamics
-        # the base class' step cache, rebuilt for the ensemble; calling it gives the mean
-        self._model_step = _CachedFusedEnsemble(env.dynamics)
         self.policy_rollout = None  # the fused rollout is for one model, not an ensemble
         self._last_plan: EnsemblePlan | None = None
         extra = getattr(env, "disagreement_key", None)

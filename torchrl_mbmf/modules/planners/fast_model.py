@@ -207,16 +207,7 @@ class CachedModelStep:
         ):
             self._layers = None
             return model.fused_step()
-        weights = [m.weight for m in linears]
-        biases = [m.bias for m in linears]
-        in_loc = torch.cat([model.state_loc, model.action_loc])
-        in_scale = torch.cat([model.state_scale, model.action_scale])
-        weights[0] = weights[0] / in_scale
-        biases[0] = biases[0] - weights[0] @ in_loc
-        out_loc = torch.cat([model.delta_loc, model.reward_loc])
-        out_scale = torch.cat([model.delta_scale, model.reward_scale])
-        weights[-1] = weights[-1] * out_scale[:, None]
-        biases[-1] = biases[-1] * out_scale + out_loc
+        weights, biases = model.fold_scaling([m.weight for m in linears], [m.bias for m in linears])
         fns = [
             _layer_fn(w, b, act, w.numel() >= self.min_packed_size)
             for w, b, act in zip(weights, biases, activations, strict=True)
