@@ -10,7 +10,8 @@ from tensordict import TensorDictBase
 
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
-from torchrl_mbmf.trainers.world_model_fit import EnsembleFitHistory, fit_world_model
+from torchrl_mbmf.trainers.fit_history import EnsembleFitHistory
+from torchrl_mbmf.trainers.world_model_fit import fit_world_model
 
 logger = logging.getLogger(__name__)
 
