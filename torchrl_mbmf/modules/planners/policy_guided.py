@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.envs.model_based import ModelBasedEnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_mbmf.modules.planners.common import Plan, ShootingPlanner, expand_candidates
+from torchrl_mbmf.modules.planners.common import ShootingPlanner
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
+from torchrl_mbmf.modules.planners.rollout import ImaginedRollout
 
 REFINEMENTS = (None, "cem", "mppi")
 
@@ -147,6 +146,7 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         self.num_policy = round(policy_fraction * num_candidates)
         self.temperature = float(temperature)
         self.min_std = float(min_std)
+        self.refinement_rounds = self.iterations if refinement is not None else 0
         if self.fast_path and refinement is None and self._samples_the_actor():
             observation = self.env.observation
             self.policy_rollout = PolicyRollout(self._model_step, self.sampler, observation)
@@ -157,7 +157,9 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         return (
             cls.sample_candidate_actions is PolicyGuidedMPCPlanner.sample_candidate_actions
             and cls.observation_of is ShootingPlanner.observation_of
-            and cls._rollout_fast is ShootingPlanner._rollout_fast
+            and cls.rollout is ShootingPlanner.rollout
+            and cls.candidate_source is ShootingPlanner.candidate_source
+            and cls.transition is ShootingPlanner.transition
             and type(self._model_step) is CachedModelStep
         )
 
@@ -166,33 +168,6 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         return self.sampler.sample(observation)
 
     # ------------------------------------------------------------------ refinement
-    def _rollout_sequences(
-        self, state: torch.Tensor, sequences: torch.Tensor | None
-    ) -> tuple[torch.Tensor, torch.Tensor, TensorDictBase]:
-        """Rolls ``m`` candidates; the last ``n`` follow ``sequences`` ``[*B, n, h, A]``.
-
-        The first ``m - n`` candidates (all of them without ``sequences``) sample the policy
-        at each imagined state. Returns every candidate's actions ``[*B, m, h, A]``, rewards
-        ``[*B, m, h]`` and final entries.
-        """
-        predict = self._model_step()
-        s = expand_candidates(state, self.num_candidates)
-        n_pol = self.num_candidates - (0 if sequences is None else sequences.shape[-3])
-        actions = s.new_empty(*s.shape[:-1], self.horizon, self.action_dim)
-        rewards = s.new_empty(*s.shape[:-1], self.horizon)
-        for t in range(self.horizon):
-            if sequences is None:
-                a = self.sample_candidate_actions(self.observation_of(s), t)
-            elif n_pol:
-                a_pol = self.sample_candidate_actions(self.observation_of(s[..., :n_pol, :]), t)
-                a = torch.cat([a_pol, sequences[..., t, :]], dim=-2)
-            else:
-                a = sequences[..., t, :]
-            actions[..., t, :] = a
-            s, r = predict(s, a)
-            rewards[..., t] = r[..., 0]
-        return actions, rewards, self._final_entries(s)
-
     def _refit(self, actions: torch.Tensor, returns: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Mean and std ``[*B, h, A]`` of the refined Gaussian from one round's candidates."""
         if self.refinement == "cem":
@@ -209,35 +184,20 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             std = (w * (actions - mean.unsqueeze(-3)).pow(2)).sum(-3).sqrt()
         return mean, std.clamp_min(self.min_std)
 
-    def plan(self, tensordict: TensorDictBase) -> Plan:
-        """Plans as the base class; with ``refinement`` adds the CEM/MPPI rounds.
+    def refined_sequences(self, rollout: ImaginedRollout, returns: torch.Tensor) -> torch.Tensor:
+        """The next round's open-loop sequences ``[*B, m - round(policy_fraction * m), h, A]``.
+
+        Drawn from the Gaussian refitted to the previous round (CEM or MPPI, see the class
+        docstring) and clipped to the action bounds.
 
         Args:
-            tensordict: real states, batch ``[*B]``.
-
-        Returns:
-            The :class:`~torchrl_mbmf.modules.planners.Plan` over the candidates of every
-            round (``first_actions`` ``[*B, m * (iterations + 1), A]``).
+            rollout: the previous round (with its actions).
+            returns: its scores ``[*B, m]``.
         """
-        if self.refinement is None:
-            return super().plan(tensordict)
-        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-            state = tensordict.get(self.state_key)
-            actions, rewards, final = self._rollout_sequences(state, None)
-            returns = self.score_candidates(rewards, final)
-            firsts, scores = [actions[..., 0, :]], [returns]
-            n_seq = self.num_candidates - self.num_policy
-            for _ in range(self.iterations):
-                mean, std = self._refit(actions, returns)
-                noise = torch.randn(
-                    *mean.shape[:-2], n_seq, *mean.shape[-2:], dtype=mean.dtype, device=mean.device
-                )
-                seqs = mean.unsqueeze(-3) + std.unsqueeze(-3) * noise
-                seqs = torch.maximum(torch.minimum(seqs, self.action_high), self.action_low)
-                actions, rewards, final = self._rollout_sequences(state, seqs)
-                returns = self.score_candidates(rewards, final)
-                firsts.append(actions[..., 0, :])
-                scores.append(returns)
-            first = torch.cat(firsts, dim=-2)
-            returns = torch.cat(scores, dim=-1)
-            return Plan(first, returns, returns.argmax(-1))
+        mean, std = self._refit(rollout.actions, returns)
+        n_seq = self.num_candidates - self.num_policy
+        noise = torch.randn(
+            *mean.shape[:-2], n_seq, *mean.shape[-2:], dtype=mean.dtype, device=mean.device
+        )
+        seqs = mean.unsqueeze(-3) + std.unsqueeze(-3) * noise
+        return torch.maximum(torch.minimum(seqs, self.action_high), self.action_low)
