@@ -16,7 +16,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
-from torchrl_mbmf.envs.keys import OBSERVATION_KEY
+from torchrl_mbmf.keys import OBSERVATION_KEY
 from torchrl_mbmf.modules.dynamics import check_hidden_sizes
 
 Distribution = Literal["tanh_normal", "normal"]
