@@ -71,6 +71,9 @@ def transition_tensors(
 def seeded_generator(seed: int | None) -> torch.Generator:
     """A CPU generator seeded with ``seed`` (from system entropy when ``None``).
 
+    Args:
+        seed: the seed, or ``None``.
+
     Examples:
         >>> from torchrl_mbmf.trainers.fit_data import seeded_generator
         >>> seeded_generator(0).initial_seed()
@@ -99,6 +102,14 @@ class FitSplit:
             (kept only when asked for: multi-step rollouts rescale at every step).
         generator: the fit's generator, after the split was drawn.
         device: the model's device.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.trainers.fit_data import FitSplit
+        >>> x = torch.zeros(4, 2)
+        >>> FitSplit(torch.arange(3), torch.arange(3, 4), x[:3], x[:3], x[3:], x[3:], None,
+        ...          torch.Generator(), torch.device("cpu")).val_x.shape
+        torch.Size([1, 2])
     """
 
     train_idx: torch.Tensor
@@ -116,6 +127,12 @@ def check_fit_settings(
     val_fraction: float, batch_size: int, max_epochs: int, patience: int
 ) -> None:
     """Raises a ``ValueError`` naming the first invalid fit setting.
+
+    Args:
+        val_fraction: held-out share, in ``(0, 1)``.
+        batch_size: minibatch size, ``>= 1``.
+        max_epochs: epoch cap, ``>= 1``.
+        patience: early-stopping patience, ``>= 1``.
 
     Examples:
         >>> from torchrl_mbmf.trainers.fit_data import check_fit_settings

@@ -20,8 +20,14 @@ from torchrl_mbmf.modules.planners.stages import Plan
 class EnsemblePlan(Plan):
     """The plan of :class:`EnsemblePolicyGuidedPlanner`: a :class:`Plan` with its trust record.
 
-    ``trusted_steps`` (the horizon when no threshold is set) and ``disagreement`` (or
-    ``None`` when it was not computed) are filled; the class keeps the name.
+    Attributes:
+        first_actions: first action of every candidate ``[*B, m, action_dim]``.
+        returns: score of every candidate ``[*B, m]``.
+        best: index of the chosen candidate ``[*B]``.
+        trusted_steps: number of imagined steps counted in every candidate's score ``[*B, m]``
+            (the horizon when no threshold is set).
+        disagreement: the members' disagreement at every candidate's imagined ``(s, a)``
+            ``[*B, m, h]``, or ``None`` when it was not computed.
 
     Examples:
         >>> import torch

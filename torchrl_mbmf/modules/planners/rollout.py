@@ -48,6 +48,11 @@ class ImaginedRollout:
         actions: every candidate's actions ``[*B, m, h, A]``, when they were kept.
         trusted_steps: trusted steps ``[*B, m]`` (with a :class:`TrustedHorizon`).
         disagreement: the transition's disagreement ``[*B, m, h]``, when it reports one.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners import ImaginedRollout
+        >>> ImaginedRollout(torch.zeros(1, 2, 1), torch.ones(1, 2, 3), torch.zeros(1, 2, 4)).actions
     """
 
     first_actions: torch.Tensor
@@ -138,6 +143,9 @@ def model_transition(
     predict: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
 ) -> Transition:
     """The transition of a world model's ``predict(s, a) -> (s', r [..., 1])`` (no disagreement).
+
+    Args:
+        predict: the model's tensor step (such as a cached folded step).
 
     Examples:
         >>> import torch
