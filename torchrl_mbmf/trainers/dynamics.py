@@ -6,11 +6,9 @@
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
 from typing import Any
 
-import torch
 from tensordict import TensorDictBase
 
 from torchrl_mbmf.data.transitions import TransitionDataset
@@ -30,8 +28,6 @@ __all__ = [
     "fit_dynamics_kwargs",
     "transition_tensors",
 ]
-
-logger = logging.getLogger(__name__)
 
 # The former private name, kept for callers that have not moved to ``transition_tensors``.
 _transition_tensors = transition_tensors
@@ -82,21 +78,7 @@ def fit_dynamics_kwargs(world_model: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def fit_dynamics(
-    model: DeltaDynamicsModel,
-    data: TransitionDataset | TensorDictBase,
-    *,
-    lr: float = 1e-4,
-    batch_size: int = 512,
-    max_epochs: int = 200,
-    val_fraction: float = 0.1,
-    patience: int = 10,
-    fit_normalizer: bool = True,
-    seed: int | None = None,
-    progress: bool = False,
-    optimizer: torch.optim.Optimizer | None = None,
-    multi_step: int = 1,
-    multi_step_weight: float = 1.0,
-    early_stopping: EarlyStopping = "objective",
+    model: DeltaDynamicsModel, data: TransitionDataset | TensorDictBase, **kwargs: Any
 ) -> FitHistory:
     """Fits the world model on real transitions with Adam and early stopping.
 
@@ -144,24 +126,11 @@ def fit_dynamics(
             (``state``, ``action``, ``("next", "state")``, ``("next", "reward")``).
 
     Keyword Args:
-        lr: Adam learning rate (ignored when ``optimizer`` is given). Defaults to ``1e-4``.
-        batch_size: minibatch size. Defaults to ``512``.
-        max_epochs: maximum number of passes over the training split. Defaults to ``200``.
-        val_fraction: share of transitions held out for early stopping. Defaults to ``0.1``.
-        patience: epochs without held-out improvement before stopping. Defaults to ``10``.
-        fit_normalizer: refit the scaling statistics on the training split first.
-            Defaults to ``True``.
-        seed: seed of the split and the minibatch order. Defaults to ``None``.
-        progress: show a tqdm bar over epochs. Defaults to ``False``.
-        optimizer: optimiser over ``model.parameters()`` to continue with (its state persists
-            across refits). Defaults to a new stock Adam (:func:`dynamics_optimizer`).
-        multi_step: length ``k`` of the open-loop rollouts of the multi-step term; ``1``
-            turns it off. Defaults to ``1``.
-        multi_step_weight: weight of the multi-step term (``>= 0``; ignored when
-            ``multi_step == 1``). Defaults to ``1.0``.
-        early_stopping: held-out criterion of early stopping and of the kept weights,
-            ``"objective"`` or ``"one_step"`` (the same when ``multi_step == 1``).
-            Defaults to ``"objective"``.
+        **kwargs: the settings of
+            :func:`~torchrl_mbmf.trainers.world_model_fit.fit_world_model` (``lr``,
+            ``batch_size``, ``max_epochs``, ``val_fraction``, ``patience``,
+            ``fit_normalizer``, ``seed``, ``progress``, ``optimizer``, ``multi_step``,
+            ``multi_step_weight``, ``early_stopping``), the thesis' values by default.
 
     Returns:
         The :class:`FitHistory`.
@@ -189,38 +158,4 @@ def fit_dynamics(
             "fit_dynamics trains one network, got an EnsembleDeltaDynamicsModel; fit it with "
             "torchrl_mbmf.trainers.ensemble_fit.fit_ensemble (or fit_world_model)"
         )
-    history = fit_world_model(
-        model,
-        data,
-        lr=lr,
-        batch_size=batch_size,
-        max_epochs=max_epochs,
-        val_fraction=val_fraction,
-        patience=patience,
-        fit_normalizer=fit_normalizer,
-        seed=seed,
-        progress=progress,
-        optimizer=optimizer,
-        multi_step=multi_step,
-        multi_step_weight=multi_step_weight,
-        early_stopping=early_stopping,
-    )
-    logger.info(
-        "fit_dynamics: %d epochs, best val loss %.5f at epoch %d (%.1fs)",
-        history.epochs,
-        history.best_val_loss,
-        history.best_epoch,
-        history.seconds,
-    )
-    if history.multi_step > 1:
-        logger.info(
-            "fit_dynamics: %d-step loss (weight %g) on %d windows: train %.5f (last epoch), "
-            "val %.5f (kept weights; early stopping on %s)",
-            history.multi_step,
-            history.multi_step_weight,
-            history.num_windows,
-            history.train_multi_step_loss[-1],
-            history.best_val_multi_step_loss,
-            history.early_stopping,
-        )
-    return history
+    return fit_world_model(model, data, **kwargs)

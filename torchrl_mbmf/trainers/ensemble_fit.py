@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -19,19 +20,7 @@ _EVAL_CHUNK = 8192
 
 
 def fit_ensemble(
-    model: EnsembleDeltaDynamicsModel,
-    data: TransitionDataset | TensorDictBase,
-    *,
-    lr: float = 1e-4,
-    batch_size: int = 512,
-    max_epochs: int = 200,
-    val_fraction: float = 0.1,
-    patience: int = 10,
-    bootstrap: bool = True,
-    fit_normalizer: bool = True,
-    seed: int | None = None,
-    progress: bool = False,
-    optimizer: torch.optim.Optimizer | None = None,
+    model: EnsembleDeltaDynamicsModel, data: TransitionDataset | TensorDictBase, **kwargs: Any
 ) -> EnsembleFitHistory:
     """Fits every member on its own bootstrap resample, with early stopping on a held-out split.
 
@@ -56,20 +45,10 @@ def fit_ensemble(
             (``state``, ``action``, ``("next", "state")``, ``("next", "reward")``).
 
     Keyword Args:
-        lr: Adam learning rate (ignored when ``optimizer`` is given). Defaults to ``1e-4``.
-        batch_size: minibatch size per member. Defaults to ``512``.
-        max_epochs: maximum number of passes over the bootstrap samples. Defaults to ``200``.
-        val_fraction: share of transitions held out for early stopping. Defaults to ``0.1``.
-        patience: epochs without held-out improvement before stopping. Defaults to ``10``.
-        bootstrap: train each member on its own bootstrap resample of the training split.
-            Defaults to ``True``.
-        fit_normalizer: refit the scaling statistics on the training split first.
-            Defaults to ``True``.
-        seed: seed of the split, the bootstrap indices and the minibatch order. Defaults to
-            ``None``.
-        progress: show a tqdm bar over epochs. Defaults to ``False``.
-        optimizer: optimiser over ``model.parameters()`` to continue with. Defaults to a new
-            Adam.
+        **kwargs: the settings of
+            :func:`~torchrl_mbmf.trainers.world_model_fit.fit_world_model` (``lr``,
+            ``batch_size`` per member, ``max_epochs``, ``val_fraction``, ``patience``,
+            ``bootstrap``, ``fit_normalizer``, ``seed``, ``progress``, ``optimizer``).
 
     Returns:
         The :class:`EnsembleFitHistory`.
@@ -94,29 +73,7 @@ def fit_ensemble(
             f"model must be an EnsembleDeltaDynamicsModel, got {type(model).__name__} "
             "(fit a single DeltaDynamicsModel with fit_dynamics)"
         )
-    history = fit_world_model(
-        model,
-        data,
-        lr=lr,
-        batch_size=batch_size,
-        max_epochs=max_epochs,
-        val_fraction=val_fraction,
-        patience=patience,
-        fit_normalizer=fit_normalizer,
-        seed=seed,
-        progress=progress,
-        optimizer=optimizer,
-        bootstrap=bootstrap,
-    )
-    logger.info(
-        "fit_ensemble: %d members, %d epochs, best val loss %.5f at epoch %d (%.1fs)",
-        history.num_members,
-        history.epochs,
-        history.best_val_loss,
-        history.best_epoch,
-        history.seconds,
-    )
-    return history
+    return fit_world_model(model, data, **kwargs)
 
 
 @dataclass

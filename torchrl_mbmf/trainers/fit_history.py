@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal, get_args
+from typing import Any, ClassVar, Literal, get_args
 
 import torch
 
-__all__ = ["EarlyStopping", "EnsembleFitHistory", "FitHistory", "check_early_stopping"]
+__all__ = [
+    "EarlyStopping",
+    "EnsembleFitHistory",
+    "FitHistory",
+    "FitRecord",
+    "check_early_stopping",
+]
 
 #: Early-stopping criteria of a fit with a multi-step term: ``"objective"``, the held-out
 #: value of the trained loss (one-step + weight x multi-step); ``"one_step"``, the held-out
@@ -34,7 +40,51 @@ def check_early_stopping(value: Any, *, key: str = "early_stopping") -> EarlySto
 
 
 @dataclass
-class FitHistory:
+class FitRecord:
+    """What every world-model fit records: losses per epoch, the kept epoch, the split sizes.
+
+    Attributes:
+        train_loss: mean training loss of each epoch.
+        val_loss: held-out loss after each epoch.
+        best_epoch: epoch (0-based) whose weights were kept; ``-1`` when no epoch improved on
+            the starting weights, which are then kept.
+        best_val_loss: held-out loss of the kept weights.
+        stopped_early: whether early stopping ended the fit before ``max_epochs``.
+        num_train: training transitions.
+        num_val: held-out transitions.
+        seconds: wall time of the fit.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.fit_history import FitRecord
+        >>> FitRecord([1.0, 0.5], [1.1, 0.6]).to_dict()["epochs"]
+        2
+    """
+
+    train_loss: list[float] = field(default_factory=list)
+    val_loss: list[float] = field(default_factory=list)
+    best_epoch: int = -1
+    best_val_loss: float = float("inf")
+    stopped_early: bool = False
+    num_train: int = 0
+    num_val: int = 0
+    seconds: float = 0.0
+
+    #: fields left out of :meth:`to_dict`.
+    unserialised: ClassVar[tuple[str, ...]] = ()
+
+    @property
+    def epochs(self) -> int:
+        """Number of epochs run."""
+        return len(self.train_loss)
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-serialisable form (with ``epochs``)."""
+        out = {k: v for k, v in asdict(self).items() if k not in self.unserialised}
+        return {**out, "epochs": self.epochs}
+
+
+@dataclass
+class FitHistory(FitRecord):
     """Per-epoch record of a world-model fit.
 
     Attributes:
@@ -72,14 +122,6 @@ class FitHistory:
         2
     """
 
-    train_loss: list[float] = field(default_factory=list)
-    val_loss: list[float] = field(default_factory=list)
-    best_epoch: int = -1
-    best_val_loss: float = float("inf")
-    stopped_early: bool = False
-    num_train: int = 0
-    num_val: int = 0
-    seconds: float = 0.0
     multi_step: int = 1
     multi_step_weight: float = 1.0
     num_windows: int = 0
@@ -89,18 +131,9 @@ class FitHistory:
     best_val_multi_step_loss: float | None = None
     early_stopping: str = "objective"
 
-    @property
-    def epochs(self) -> int:
-        """Number of epochs run."""
-        return len(self.train_loss)
-
-    def to_dict(self) -> dict[str, object]:
-        """JSON-serialisable form."""
-        return {**asdict(self), "epochs": self.epochs}
-
 
 @dataclass
-class EnsembleFitHistory:
+class EnsembleFitHistory(FitRecord):
     """Per-epoch record of an ensemble fit.
 
     Attributes:
@@ -130,26 +163,10 @@ class EnsembleFitHistory:
         (2, [0.5, 0.7])
     """
 
-    train_loss: list[float] = field(default_factory=list)
-    val_loss: list[float] = field(default_factory=list)
-    best_epoch: int = -1
-    best_val_loss: float = float("inf")
-    stopped_early: bool = False
-    num_train: int = 0
-    num_val: int = 0
-    seconds: float = 0.0
     member_val_loss: list[float] = field(default_factory=list)
     num_members: int = 0
     bootstrap: bool = True
     unique_fraction: list[float] = field(default_factory=list)
     val_indices: torch.Tensor | None = field(default=None, repr=False)
 
-    @property
-    def epochs(self) -> int:
-        """Number of epochs run."""
-        return len(self.train_loss)
-
-    def to_dict(self) -> dict[str, object]:
-        """JSON-serialisable form."""
-        out = {k: v for k, v in asdict(self).items() if k != "val_indices"}
-        return {**out, "epochs": self.epochs}
+    unserialised: ClassVar[tuple[str, ...]] = ("val_indices",)

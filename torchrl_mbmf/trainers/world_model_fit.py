@@ -318,22 +318,27 @@ def fit_world_model(
 
     Keyword Args:
         lr: Adam learning rate (ignored when ``optimizer`` is given). Defaults to ``1e-4``.
-        batch_size: minibatch size (per member). Defaults to ``512``.
-        max_epochs: maximum number of epochs. Defaults to ``200``.
+        batch_size: minibatch size (per member for an ensemble). Defaults to ``512``.
+        max_epochs: maximum number of passes over the training split. Defaults to ``200``.
         val_fraction: share of transitions held out for early stopping. Defaults to ``0.1``.
         patience: epochs without held-out improvement before stopping. Defaults to ``10``.
         fit_normalizer: refit the scaling statistics on the training split first.
             Defaults to ``True``.
-        seed: seed of the split, the bootstrap and the minibatch order. Defaults to ``None``.
+        seed: seed of the split, the bootstrap indices and the minibatch order. Defaults to
+            ``None``.
         progress: show a tqdm bar over epochs. Defaults to ``False``.
-        optimizer: optimiser over ``model.parameters()`` to continue with. Defaults to a new
-            stock Adam.
-        multi_step: length ``k`` of the multi-step term (one network only). Defaults to ``1``.
-        multi_step_weight: weight of the multi-step term. Defaults to ``1.0``.
-        early_stopping: ``"objective"`` or ``"one_step"`` (see :data:`EarlyStopping`).
+        optimizer: optimiser over ``model.parameters()`` to continue with (its state persists
+            across refits). Defaults to a new stock Adam (:func:`dynamics_optimizer`).
+        multi_step: length ``k`` of the open-loop rollouts of the multi-step term (one
+            network only); ``1`` turns it off. Defaults to ``1``.
+        multi_step_weight: weight of the multi-step term (``>= 0``; ignored when
+            ``multi_step == 1``). Defaults to ``1.0``.
+        early_stopping: held-out criterion of early stopping and of the kept weights,
+            ``"objective"`` or ``"one_step"`` (the same when ``multi_step == 1``).
             Defaults to ``"objective"``.
-        bootstrap: per-member bootstrap resamples (ensembles only). Defaults to ``None``:
-            ``True`` for an ensemble.
+        bootstrap: train each member of an ensemble on its own bootstrap resample of the
+            training split (``False``: every member on the whole split). Defaults to
+            ``None``: ``True`` for an ensemble; one network takes ``None`` or ``False``.
 
     Returns:
         The :class:`FitHistory` (one network) or :class:`EnsembleFitHistory` (ensemble).
@@ -396,4 +401,36 @@ def fit_world_model(
     )
     history = objective.history
     history.seconds = time.perf_counter() - start
+    _log(history)
     return history
+
+
+def _log(history: FitHistory | EnsembleFitHistory) -> None:
+    if isinstance(history, EnsembleFitHistory):
+        logger.info(
+            "fit_ensemble: %d members, %d epochs, best val loss %.5f at epoch %d (%.1fs)",
+            history.num_members,
+            history.epochs,
+            history.best_val_loss,
+            history.best_epoch,
+            history.seconds,
+        )
+        return
+    logger.info(
+        "fit_dynamics: %d epochs, best val loss %.5f at epoch %d (%.1fs)",
+        history.epochs,
+        history.best_val_loss,
+        history.best_epoch,
+        history.seconds,
+    )
+    if history.multi_step > 1:
+        logger.info(
+            "fit_dynamics: %d-step loss (weight %g) on %d windows: train %.5f (last epoch), "
+            "val %.5f (kept weights; early stopping on %s)",
+            history.multi_step,
+            history.multi_step_weight,
+            history.num_windows,
+            history.train_multi_step_loss[-1],
+            history.best_val_multi_step_loss,
+            history.early_stopping,
+        )

@@ -29,8 +29,6 @@ from torchrl_mbmf.modules.planners.sampling import ActorSampler
 from torchrl_mbmf.modules.planners.stages import (
     Plan,
     discounted_return,
-    expand_candidates,
-    gather_candidate,
     select_best,
     truncated_return,
 )
@@ -424,13 +422,4 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         return out
 
 
-__all__ = [
-    "Plan",
-    "ShootingPlanner",
-    "discounted_return",
-    "expand_candidates",
-    "gather_candidate",
-    "learned_model",
-    "select_best",
-    "truncated_return",
-]
+__all__ = ["ShootingPlanner", "learned_model"]

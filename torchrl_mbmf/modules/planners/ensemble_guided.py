@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import numbers
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
@@ -82,15 +82,12 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
     Keyword Args:
         disagreement_threshold: disagreement above which an imagined step is not trusted, or
             ``None`` for the full horizon. Defaults to ``None``.
-        num_candidates: candidate trajectories ``m``. Defaults to ``15``.
-        horizon: imagined steps ``h``. Defaults to ``10``.
-        value_module: module writing ``value_key`` (e.g. the PPO critic), evaluated at each
-            candidate's last trusted state. Defaults to none.
-        value_key: output key of ``value_module``. Defaults to ``"state_value"``.
-        discount: discount of the score. Defaults to ``1.0``.
-        action_key: action key. Defaults to ``"action"``.
-        log_prob_key: log-prob key. Defaults to ``"action_log_prob"``.
-        stats_key: key of the plan statistics, or ``None``. Defaults to ``"planner"``.
+        **kwargs: the keyword arguments of
+            :class:`~torchrl_mbmf.modules.planners.ShootingPlanner`, with its defaults (a
+            ``value_module`` is evaluated at each candidate's last trusted state):
+            ``num_candidates`` (``m = 15``), ``horizon`` (``h = 10``), ``value_module``
+            (none: the thesis), ``value_key``, ``discount`` (``1.0``), ``action_key``,
+            ``log_prob_key`` and ``stats_key`` (``"planner"``).
 
     Examples:
         >>> from torchrl_mbmf.envs import EnsembleLearnedDynamicsEnv, make_gym_state_env
@@ -115,14 +112,7 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
         actor: TensorDictModuleBase,
         *,
         disagreement_threshold: float | None = None,
-        num_candidates: int = 15,
-        horizon: int = 10,
-        value_module: TensorDictModuleBase | None = None,
-        value_key: NestedKey = "state_value",
-        discount: float = 1.0,
-        action_key: NestedKey = "action",
-        log_prob_key: NestedKey = "action_log_prob",
-        stats_key: NestedKey | None = "planner",
+        **kwargs: Any,
     ) -> None:
         if not isinstance(learned_model(env), EnsembleDeltaDynamicsModel):
             model = getattr(env, "dynamics", None)
@@ -143,18 +133,11 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
                     f"disagreement_threshold must be > 0 (or None for the full horizon), got "
                     f"{disagreement_threshold}"
                 )
-        super().__init__(
-            env,
-            actor,
-            num_candidates=num_candidates,
-            horizon=horizon,
-            value_module=value_module,
-            value_key=value_key,
-            discount=discount,
-            action_key=action_key,
-            log_prob_key=log_prob_key,
-            stats_key=stats_key,
-        )
+        if kwargs.get("refinement") is not None:
+            raise ValueError(
+                f"refinement={kwargs['refinement']!r} is not available on the ensemble planner"
+            )
+        super().__init__(env, actor, **kwargs)
         self.disagreement_threshold = (
             None if disagreement_threshold is None else float(disagreement_threshold)
         )
@@ -163,11 +146,11 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
         extra = getattr(env, "disagreement_key", None)
         if extra is not None:  # an output of the learned env, not an input of the planner
             self.in_keys = [k for k in self.in_keys if k != extra]
-        if stats_key is not None:
+        if self.stats_key is not None:
             self.out_keys = [
                 *self.out_keys,
-                (stats_key, "effective_horizon"),
-                (stats_key, "disagreement"),
+                (self.stats_key, "effective_horizon"),
+                (self.stats_key, "disagreement"),
             ]
 
     plan_class = EnsemblePlan

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from torchrl_mbmf.modules.planners.common import ShootingPlanner
@@ -46,15 +47,6 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             ``log_prob``), reading the policy observation.
 
     Keyword Args:
-        num_candidates: candidate trajectories ``m``. Defaults to ``15``.
-        horizon: imagined steps ``h``. Defaults to ``10``.
-        value_module: module writing ``value_key`` (e.g. the PPO critic); its value at the last
-            imagined state is added to the score. Defaults to none (thesis).
-        value_key: output key of ``value_module``. Defaults to ``"state_value"``.
-        discount: discount of the score. Defaults to ``1.0``.
-        action_key: action key. Defaults to ``"action"``.
-        log_prob_key: log-prob key. Defaults to ``"action_log_prob"``.
-        stats_key: key of the candidates' best/mean predicted return. Defaults to ``"planner"``.
         refinement: ``None`` (the thesis: one round of policy samples), ``"cem"`` or
             ``"mppi"``: after the policy-sampled round, ``iterations`` more rounds refine a
             Gaussian over action sequences ``[h, action_dim]`` fitted to the previous round
@@ -72,6 +64,11 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             Defaults to ``1/3``.
         temperature: MPPI temperature (in units of the round's return std). Defaults to ``1.0``.
         min_std: floor of the refined Gaussian's std (action units). Defaults to ``0.05``.
+        **kwargs: the keyword arguments of
+            :class:`~torchrl_mbmf.modules.planners.ShootingPlanner`, with its defaults:
+            ``num_candidates`` (``m = 15``), ``horizon`` (``h = 10``), ``value_module``
+            (none: the thesis), ``value_key``, ``discount`` (``1.0``), ``action_key``,
+            ``log_prob_key`` and ``stats_key`` (``"planner"``).
 
     Examples:
         >>> from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env
@@ -91,37 +88,20 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         env: ModelBasedEnvBase,
         actor: TensorDictModuleBase,
         *,
-        num_candidates: int = 15,
-        horizon: int = 10,
-        value_module: TensorDictModuleBase | None = None,
-        value_key: NestedKey = "state_value",
-        discount: float = 1.0,
-        action_key: NestedKey = "action",
-        log_prob_key: NestedKey = "action_log_prob",
-        stats_key: NestedKey | None = "planner",
         refinement: str | None = None,
         iterations: int = 2,
         num_elites: int = 3,
         policy_fraction: float = 1 / 3,
         temperature: float = 1.0,
         min_std: float = 0.05,
+        **kwargs: Any,
     ) -> None:
         if actor is None:
             raise TypeError("PolicyGuidedMPCPlanner needs a stochastic actor, got None")
         if refinement not in REFINEMENTS:
             raise ValueError(f"refinement must be one of {REFINEMENTS}, got {refinement!r}")
-        super().__init__(
-            env,
-            num_candidates=num_candidates,
-            horizon=horizon,
-            actor=actor,
-            value_module=value_module,
-            value_key=value_key,
-            discount=discount,
-            action_key=action_key,
-            log_prob_key=log_prob_key,
-            stats_key=stats_key,
-        )
+        super().__init__(env, actor=actor, **kwargs)
+        num_candidates = self.num_candidates
         self.refinement = refinement
         if refinement is not None:
             if not self.fast_path:
