@@ -9,7 +9,11 @@ import torch
 from torch import nn
 
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel, build_mlp, check_hidden_sizes
-from torchrl_mbmf.modules.ensemble_layers import EnsembleLinear, FusedEnsembleStep
+from torchrl_mbmf.modules.ensemble_layers import (
+    EnsembleLinear,
+    FusedEnsembleStep,
+    member_as_single_model,
+)
 
 
 class EnsembleDeltaDynamicsModel(DeltaDynamicsModel):
@@ -368,28 +372,7 @@ class EnsembleDeltaDynamicsModel(DeltaDynamicsModel):
             >>> torch.allclose(ens.member(1)(s, a)[0], ens.forward_members(s, a)[0][1])
             True
         """
-        if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < self.num_members:
-            raise ValueError(f"member index must be in [0, {self.num_members - 1}], got {k!r}")
-        act = next((type(m) for m in self.net if not isinstance(m, EnsembleLinear)), nn.ReLU)
-        single = DeltaDynamicsModel(
-            self.state_dim,
-            self.action_dim,
-            hidden_sizes=self.hidden_sizes,
-            activation=act,
-            action_low=self.action_low,
-            action_high=self.action_high,
-        ).to(device=self.state_loc.device, dtype=self.state_loc.dtype)
-        ours = [m for m in self.net if isinstance(m, EnsembleLinear)]
-        theirs = [m for m in single.net if isinstance(m, nn.Linear)]
-        for i, (src, dst) in enumerate(zip(ours, theirs, strict=True)):
-            w, b = src.weight[k], src.bias[k]
-            if i == len(ours) - 1:
-                w, b = w[:, : self.state_dim + 1], b[: self.state_dim + 1]
-            dst.weight.copy_(w.T)
-            dst.bias.copy_(b)
-        for name, buf in single.named_buffers():
-            buf.copy_(getattr(self, name))
-        return single
+        return member_as_single_model(self, k)
 
     # ------------------------------------------------------------------ fast inference
     def fused_members(self) -> FusedEnsembleStep:

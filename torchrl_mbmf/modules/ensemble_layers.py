@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+
 if TYPE_CHECKING:
     from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 
@@ -190,4 +192,48 @@ class FusedEnsembleStep:
         return state + out[..., : self.state_dim], out[..., self.state_dim :]
 
 
-__all__ = ["EnsembleLinear", "FusedEnsembleStep"]
+@torch.no_grad()
+def member_as_single_model(ensemble: EnsembleDeltaDynamicsModel, k: int) -> DeltaDynamicsModel:
+    """Member ``k`` of an ensemble as a standalone single model.
+
+    A :class:`~torchrl_mbmf.modules.DeltaDynamicsModel` with the member's weights (its mean
+    head) and the shared scaling statistics; it does not share memory with the ensemble
+    (:meth:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel.member`).
+
+    Args:
+        ensemble: the ensemble.
+        k: member index in ``[0, K)``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules import EnsembleDeltaDynamicsModel
+        >>> from torchrl_mbmf.modules.ensemble_layers import member_as_single_model
+        >>> ens = EnsembleDeltaDynamicsModel(3, 1, num_members=2, hidden_sizes=(8,))
+        >>> member_as_single_model(ens, 0).net[0].weight.shape
+        torch.Size([8, 4])
+    """
+    if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < ensemble.num_members:
+        raise ValueError(f"member index must be in [0, {ensemble.num_members - 1}], got {k!r}")
+    act = next((type(m) for m in ensemble.net if not isinstance(m, EnsembleLinear)), nn.ReLU)
+    single = DeltaDynamicsModel(
+        ensemble.state_dim,
+        ensemble.action_dim,
+        hidden_sizes=ensemble.hidden_sizes,
+        activation=act,
+        action_low=ensemble.action_low,
+        action_high=ensemble.action_high,
+    ).to(device=ensemble.state_loc.device, dtype=ensemble.state_loc.dtype)
+    ours = [m for m in ensemble.net if isinstance(m, EnsembleLinear)]
+    theirs = [m for m in single.net if isinstance(m, nn.Linear)]
+    for i, (src, dst) in enumerate(zip(ours, theirs, strict=True)):
+        w, b = src.weight[k], src.bias[k]
+        if i == len(ours) - 1:
+            w, b = w[:, : ensemble.state_dim + 1], b[: ensemble.state_dim + 1]
+        dst.weight.copy_(w.T)
+        dst.bias.copy_(b)
+    for name, buf in single.named_buffers():
+        buf.copy_(getattr(ensemble, name))
+    return single
+
+
+__all__ = ["EnsembleLinear", "FusedEnsembleStep", "member_as_single_model"]

@@ -16,8 +16,13 @@ from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 from torchrl_mbmf.objectives.dynamics_loss import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.trainers.fit_data import MultiStepWindows, transition_tensors
-from torchrl_mbmf.trainers.fit_history import EarlyStopping, FitHistory, check_early_stopping
-from torchrl_mbmf.trainers.world_model_fit import dynamics_optimizer, fit_world_model
+from torchrl_mbmf.trainers.fit_history import (
+    EarlyStopping,
+    FitHistory,
+    check_early_stopping,
+    dynamics_optimizer,
+)
+from torchrl_mbmf.trainers.world_model_fit import fit_world_model
 
 __all__ = [
     "EarlyStopping",

@@ -31,6 +31,7 @@ from torchrl_mbmf.trainers.fit_history import (
     EnsembleFitHistory,
     FitHistory,
     check_early_stopping,
+    dynamics_optimizer,
 )
 
 __all__ = ["dynamics_optimizer", "fit_world_model"]
@@ -41,45 +42,6 @@ logger = logging.getLogger(__name__)
 # this offset, so the split and the one-step minibatch order are those of a one-step fit.
 _WINDOW_SEED_OFFSET = 1_000_003
 _EVAL_CHUNK = 8192
-
-
-def dynamics_optimizer(
-    model: torch.nn.Module, *, lr: float = 1e-4, fused_adam: bool = False
-) -> torch.optim.Adam:
-    """The world model's Adam, to pass to every :func:`fit_dynamics` refit of a run.
-
-    The default is the thesis' optimiser, :class:`torch.optim.Adam` with its stock settings:
-    the optimiser :func:`fit_dynamics` builds when it is given none. ``fused_adam=True`` asks
-    for PyTorch's fused kernel instead (``Adam(fused=True)``), one pass over each parameter
-    per step instead of about seven: the same update formula, but computed in another order,
-    so the weights differ from the stock Adam's in the last float bits (on the order of
-    ``1e-8`` after tens of steps) and a fit is no longer bit-identical to the thesis loop.
-
-    Args:
-        model: the world model.
-
-    Keyword Args:
-        lr: learning rate. Defaults to ``1e-4`` (thesis table 7).
-        fused_adam: use the fused Adam kernel (changes float rounding). Defaults to ``False``.
-
-    Returns:
-        The optimiser over ``model.parameters()``.
-
-    Raises:
-        ValueError: if ``lr`` is not a positive finite number.
-
-    Examples:
-        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.dynamics import dynamics_optimizer
-        >>> optimizer = dynamics_optimizer(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
-        >>> optimizer.defaults["lr"], optimizer.defaults["fused"]
-        (0.0001, None)
-    """
-    if isinstance(lr, bool) or not isinstance(lr, int | float) or not 0 < lr < math.inf:
-        raise ValueError(f"lr must be a positive finite number, got {lr!r}")
-    if fused_adam:
-        return torch.optim.Adam(model.parameters(), lr=lr, fused=True)
-    return torch.optim.Adam(model.parameters(), lr=lr)
 
 
 # ----------------------------------------------------------------------- objectives

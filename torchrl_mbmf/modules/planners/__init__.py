@@ -1,4 +1,4 @@
-from torchrl_mbmf.modules.planners.common import ShootingPlanner, learned_model
+from torchrl_mbmf.modules.planners.common import ShootingPlanner
 from torchrl_mbmf.modules.planners.ensemble_guided import EnsemblePlan, EnsemblePolicyGuidedPlanner
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep, ModelLayers
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
@@ -10,6 +10,7 @@ from torchrl_mbmf.modules.planners.rollout import (
     SequenceMixture,
     TrustedHorizon,
     imagine,
+    learned_model,
     model_transition,
 )
 from torchrl_mbmf.modules.planners.sampling import ActorSampler

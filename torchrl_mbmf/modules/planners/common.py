@@ -13,7 +13,6 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.planners import MPCPlannerBase
 
-from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
 from torchrl_mbmf.modules.planners.rollout import (
@@ -23,6 +22,7 @@ from torchrl_mbmf.modules.planners.rollout import (
     Transition,
     TrustedHorizon,
     imagine,
+    learned_model,
     model_transition,
 )
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
@@ -32,30 +32,6 @@ from torchrl_mbmf.modules.planners.stages import (
     select_best,
     truncated_return,
 )
-
-
-def learned_model(env: object) -> DeltaDynamicsModel | None:
-    """The world model of a learned env the planners can step as tensors, else ``None``.
-
-    A learned env (such as :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv`) exposes its
-    ``dynamics`` (a :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`), its ``state_key``, its
-    ``observation_key`` and ``observation(state)``, the policy observation of a state tensor.
-
-    Args:
-        env: any env.
-
-    Examples:
-        >>> from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env
-        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.modules.planners.common import learned_model
-        >>> real = make_gym_state_env("Pendulum-v1")
-        >>> env = LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real)
-        >>> learned_model(env) is env.dynamics, learned_model(real)
-        (True, None)
-    """
-    model = getattr(env, "dynamics", None)
-    steppable = callable(getattr(env, "observation", None)) and hasattr(env, "state_key")
-    return model if isinstance(model, DeltaDynamicsModel) and steppable else None
 
 
 # --------------------------------------------------------------------- planner
@@ -422,4 +398,4 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         return out
 
 
-__all__ = ["ShootingPlanner", "learned_model"]
+__all__ = ["ShootingPlanner"]

@@ -11,9 +11,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
-from torchrl_mbmf.modules.planners.common import learned_model
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
-from torchrl_mbmf.modules.planners.rollout import MemberTransition, TrustedHorizon
+from torchrl_mbmf.modules.planners.rollout import MemberTransition, TrustedHorizon, learned_model
 from torchrl_mbmf.modules.planners.stages import Plan
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.ensemble_layers import FusedEnsembleStep
 from torchrl_mbmf.modules.planners.stages import expand_candidates
 
@@ -32,8 +33,33 @@ __all__ = [
     "Transition",
     "TrustedHorizon",
     "imagine",
+    "learned_model",
     "model_transition",
 ]
+
+
+def learned_model(env: object) -> DeltaDynamicsModel | None:
+    """The world model of a learned env the planners can step as tensors, else ``None``.
+
+    A learned env (such as :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv`) exposes its
+    ``dynamics`` (a :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`), its ``state_key``, its
+    ``observation_key`` and ``observation(state)``, the policy observation of a state tensor.
+
+    Args:
+        env: any env.
+
+    Examples:
+        >>> from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env
+        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+        >>> from torchrl_mbmf.modules.planners import learned_model
+        >>> real = make_gym_state_env("Pendulum-v1")
+        >>> env = LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real)
+        >>> learned_model(env) is env.dynamics, learned_model(real)
+        (True, None)
+    """
+    model = getattr(env, "dynamics", None)
+    steppable = callable(getattr(env, "observation", None)) and hasattr(env, "state_key")
+    return model if isinstance(model, DeltaDynamicsModel) and steppable else None
 
 
 @dataclass
