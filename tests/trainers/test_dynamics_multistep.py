@@ -16,7 +16,7 @@ from torchrl_mbmf.envs import make_gym_state_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
 from torchrl_mbmf.objectives.open_loop import open_loop_rollout
 from torchrl_mbmf.trainers import fit_dynamics
-from torchrl_mbmf.trainers.dynamics import _MultiStepWindows, fit_dynamics_kwargs
+from torchrl_mbmf.trainers.dynamics import MultiStepWindows, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.world_model_job import run_fit_world_model
 
 _ANGLE = 0.3
@@ -141,7 +141,7 @@ def test_training_windows_lie_in_the_training_split():
         td["next", "reward"].float().reshape(-1, 1),
     ]
     train_idx = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[50:]
-    windows = _MultiStepWindows(data, 4, tensors, train_idx, torch.device("cpu"))
+    windows = MultiStepWindows(data, 4, tensors, train_idx, torch.device("cpu"))
     in_train = torch.zeros(len(data), dtype=torch.bool)
     in_train[train_idx] = True
     assert in_train[windows.train].all()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Literal
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -14,6 +15,11 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl_mbmf.envs.keys import OBSERVATION_KEY, STATE_KEY
 from torchrl_mbmf.envs.transforms.observation import StateToObservation
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
+
+#: How an ensemble steps a batch: ``"cycle"``, element ``i`` of the last batch dim in member
+#: ``i mod K``; ``"mean"``, the members' mean.
+MEMBER_ASSIGNMENTS = ("cycle", "mean")
 
 
 def _find_state_to_observation(
@@ -53,6 +59,15 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
     :class:`~torchrl.envs.model_based.ModelBasedEnvBase` directly (``WorldModelEnv`` in torchrl
     0.14.1 cannot be built on bounded action specs).
 
+    **Ensembles.** An :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel` steps its
+    members' mean by default. ``member_assignment="cycle"`` rolls element ``i`` of the last
+    batch dim in member ``i mod K`` (an unbatched env uses member 0), the convention of
+    :class:`~torchrl_mbmf.modules.planners.EnsemblePolicyGuidedPlanner`, and a
+    ``disagreement_key`` makes every step write the members' disagreement at its
+    ``(state, action)`` (:meth:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel.disagreement`,
+    ``[*B, 1]``, an observation entry of the spec; ``reset`` writes 0).
+    :class:`~torchrl_mbmf.envs.EnsembleLearnedDynamicsEnv` is this env with both on.
+
     For planners that need raw speed, :meth:`predict` steps tensors without building
     tensordicts; it computes exactly what :meth:`step` writes.
 
@@ -71,6 +86,10 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         observation_fn: maps a state tensor to the policy observation. Defaults to the real
             env's ``StateToObservation`` transform.
         device: device of the env. Defaults to the world model's device.
+        member_assignment: ``"cycle"`` or ``"mean"`` (ensembles only, see above). Defaults
+            to ``None``: the members' mean.
+        disagreement_key: key of the members' disagreement (ensembles only), or ``None``.
+            Defaults to ``None``.
 
     Examples:
         >>> import torch
@@ -98,10 +117,22 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         reward_key: NestedKey = "reward",
         observation_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
         device: torch.device | str | None = None,
+        member_assignment: Literal["cycle", "mean"] | None = None,
+        disagreement_key: NestedKey | None = None,
     ) -> None:
         if not isinstance(world_model, DeltaDynamicsModel):
             raise TypeError(
                 f"world_model must be a DeltaDynamicsModel, got {type(world_model).__name__}"
+            )
+        if member_assignment is not None and member_assignment not in MEMBER_ASSIGNMENTS:
+            raise ValueError(
+                f"member_assignment must be one of {MEMBER_ASSIGNMENTS}, got {member_assignment!r}"
+            )
+        members = member_assignment is not None or disagreement_key is not None
+        if members and not isinstance(world_model, EnsembleDeltaDynamicsModel):
+            raise TypeError(
+                "member_assignment and disagreement_key need an EnsembleDeltaDynamicsModel, got "
+                f"{type(world_model).__name__}"
             )
         if device is None:
             device = next(world_model.parameters()).device
@@ -160,6 +191,14 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
             shape=bs,
         )
+        if disagreement_key in (state_key, observation_key, action_key, reward_key):
+            raise ValueError(f"disagreement_key={disagreement_key!r} collides with another key")
+        self.member_assignment = member_assignment
+        self.disagreement_key = disagreement_key
+        if disagreement_key is not None:
+            spec = self.observation_spec.clone()
+            spec[disagreement_key] = Unbounded(shape=(*bs, 1), device=self.device)
+            self.observation_spec = spec
 
     def observation(self, state: torch.Tensor) -> torch.Tensor | None:
         """The policy observation of ``state`` (``None`` when there is no observation key)."""
@@ -167,10 +206,22 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             return None
         return self._observation_fn(state)
 
+    def _members_of(self, batch_size: torch.Size) -> torch.Tensor | None:
+        if self.member_assignment != "cycle":
+            return None
+        return EnsembleDeltaDynamicsModel.cyclic_member_index(batch_size, self.dynamics.num_members)
+
     def predict(
         self, state: torch.Tensor, action: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Tensor-level step: next state ``[..., state_dim]`` and reward ``[..., 1]``."""
+        """Tensor-level step: next state ``[..., state_dim]`` and reward ``[..., 1]``.
+
+        Args:
+            state: states ``[*B, state_dim]``.
+            action: actions ``[*B, action_dim]``.
+        """
+        if self.member_assignment == "cycle":
+            return self.dynamics(state, action, self._members_of(state.shape[:-1]))
         return self.dynamics(state, action)
 
     def fast_predictor(self) -> Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]:
@@ -178,9 +229,17 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
 
         A snapshot of the current weights (see
         :meth:`~torchrl_mbmf.modules.DeltaDynamicsModel.fused_step`); planners build one per
-        plan.
+        plan. With ``member_assignment="cycle"`` only each element's own member is evaluated.
         """
-        return self.dynamics.fused_step()
+        if self.member_assignment != "cycle":
+            return self.dynamics.fused_step()
+        fused, d = self.dynamics.fused_members(), self.dynamics.state_dim
+
+        def step(state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            out = fused.cyclic(state, action)
+            return state + out[..., :d], out[..., d:]
+
+        return step
 
     def _fill(self, state: torch.Tensor, batch_size: torch.Size) -> TensorDict:
         out = TensorDict({self.state_key: state}, batch_size=batch_size, device=self.device)
@@ -192,11 +251,18 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        next_state, reward = self.dynamics(
-            tensordict.get(self.state_key), tensordict.get(self.action_key)
-        )
+        state, action = tensordict.get(self.state_key), tensordict.get(self.action_key)
+        if self.disagreement_key is None:
+            next_state, reward = self.predict(state, action)
+        else:
+            members = self._members_of(tensordict.batch_size)
+            next_state, reward, disagreement = self.dynamics.predict_with_disagreement(
+                state, action, members
+            )
         out = self._fill(next_state, tensordict.batch_size)
         out.set(self.reward_key, reward)
+        if self.disagreement_key is not None:
+            out.set(self.disagreement_key, disagreement.unsqueeze(-1))
         return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: object) -> TensorDictBase:
@@ -217,7 +283,10 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
                 f"reset state {self.state_key!r} has last dim {state.shape[-1]}, expected "
                 f"{self.dynamics.state_dim}"
             )
-        return self._fill(state, batch_size)
+        out = self._fill(state, batch_size)
+        if self.disagreement_key is not None:  # no prediction made yet
+            out.set(self.disagreement_key, state.new_zeros(*batch_size, 1))
+        return out
 
     def _set_seed(self, seed: int | None) -> None:
         # The learned env is deterministic: nothing to seed.

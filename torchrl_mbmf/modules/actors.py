@@ -16,7 +16,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
-from torchrl_mbmf.envs.keys import OBSERVATION_KEY
+from torchrl_mbmf.keys import OBSERVATION_KEY
 from torchrl_mbmf.modules.dynamics import check_hidden_sizes
 
 Distribution = Literal["tanh_normal", "normal"]
@@ -31,6 +31,32 @@ def _dims(env: EnvBase, observation_key: NestedKey, action_key: NestedKey):
         )
     action_spec = env.full_action_spec_unbatched[action_key]
     return obs_spec[observation_key].shape[-1], action_spec
+
+
+def _mlp(in_features: int, out_features: int, hidden_sizes, activation) -> MLP:
+    return MLP(
+        in_features=in_features,
+        out_features=out_features,
+        num_cells=list(hidden_sizes),
+        activation_class=activation,
+    )
+
+
+def _tanh_normal_kwargs(action_spec) -> dict[str, object]:
+    return {"low": action_spec.space.low, "high": action_spec.space.high, "tanh_loc": False}
+
+
+def _actor(net, observation_key, action_key, action_spec, dist_class, dist_kwargs):
+    """``net`` writing ``loc`` and ``scale`` from the observation, then the distribution."""
+    return ProbabilisticActor(
+        TensorDictModule(net, in_keys=[observation_key], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        out_keys=[action_key],
+        spec=action_spec,
+        distribution_class=dist_class,
+        distribution_kwargs=dist_kwargs,
+        return_log_prob=True,
+    )
 
 
 class _TanhLoc(nn.Module):
@@ -92,22 +118,12 @@ def make_ppo_actor_critic(
     hidden_sizes = check_hidden_sizes(hidden_sizes)
     obs_dim, action_spec = _dims(env, observation_key, action_key)
     action_dim = action_spec.shape[-1]
-    net = MLP(
-        in_features=obs_dim,
-        out_features=action_dim,
-        num_cells=list(hidden_sizes),
-        activation_class=activation,
-    )
+    net = _mlp(obs_dim, action_dim, hidden_sizes, activation)
     if distribution == "normal":
         net = _TanhLoc(net)
         dist_class, dist_kwargs = IndependentNormal, {}
     elif distribution == "tanh_normal":
-        dist_class = TanhNormal
-        dist_kwargs = {
-            "low": action_spec.space.low,
-            "high": action_spec.space.high,
-            "tanh_loc": False,
-        }
+        dist_class, dist_kwargs = TanhNormal, _tanh_normal_kwargs(action_spec)
     else:
         raise ValueError(
             f"unknown distribution {distribution!r}; expected 'tanh_normal' or 'normal'"
@@ -115,24 +131,8 @@ def make_ppo_actor_critic(
     policy_net = nn.Sequential(
         net, AddStateIndependentNormalScale(action_dim, init_value=init_log_std)
     )
-    actor = ProbabilisticActor(
-        TensorDictModule(policy_net, in_keys=[observation_key], out_keys=["loc", "scale"]),
-        in_keys=["loc", "scale"],
-        out_keys=[action_key],
-        spec=action_spec,
-        distribution_class=dist_class,
-        distribution_kwargs=dist_kwargs,
-        return_log_prob=True,
-    )
-    critic = ValueOperator(
-        MLP(
-            in_features=obs_dim,
-            out_features=1,
-            num_cells=list(hidden_sizes),
-            activation_class=activation,
-        ),
-        in_keys=[observation_key],
-    )
+    actor = _actor(policy_net, observation_key, action_key, action_spec, dist_class, dist_kwargs)
+    critic = ValueOperator(_mlp(obs_dim, 1, hidden_sizes, activation), in_keys=[observation_key])
     return actor, critic
 
 
@@ -174,34 +174,13 @@ def make_sac_actor_critic(
     obs_dim, action_spec = _dims(env, observation_key, action_key)
     action_dim = action_spec.shape[-1]
     net = nn.Sequential(
-        MLP(
-            in_features=obs_dim,
-            out_features=2 * action_dim,
-            num_cells=list(hidden_sizes),
-            activation_class=activation,
-        ),
+        _mlp(obs_dim, 2 * action_dim, hidden_sizes, activation),
         NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
     )
-    actor = ProbabilisticActor(
-        TensorDictModule(net, in_keys=[observation_key], out_keys=["loc", "scale"]),
-        in_keys=["loc", "scale"],
-        out_keys=[action_key],
-        spec=action_spec,
-        distribution_class=TanhNormal,
-        distribution_kwargs={
-            "low": action_spec.space.low,
-            "high": action_spec.space.high,
-            "tanh_loc": False,
-        },
-        return_log_prob=True,
-    )
+    kwargs = _tanh_normal_kwargs(action_spec)
+    actor = _actor(net, observation_key, action_key, action_spec, TanhNormal, kwargs)
     qvalue = ValueOperator(
-        MLP(
-            in_features=obs_dim + action_dim,
-            out_features=1,
-            num_cells=list(hidden_sizes),
-            activation_class=activation,
-        ),
+        _mlp(obs_dim + action_dim, 1, hidden_sizes, activation),
         in_keys=[observation_key, action_key],
     )
     return actor, qvalue

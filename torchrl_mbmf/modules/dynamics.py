@@ -45,6 +45,43 @@ def check_hidden_sizes(hidden_sizes: Sequence[int], name: str = "hidden_sizes") 
     return tuple(int(h) for h in hidden_sizes)
 
 
+def build_mlp(
+    in_features: int,
+    hidden_sizes: Sequence[int],
+    out_features: int,
+    activation: type[nn.Module],
+    linear: Callable[[int, int], nn.Module] = nn.Linear,
+) -> nn.Sequential:
+    """``linear -> activation`` per hidden width, then a last ``linear``: the world model's net.
+
+    Args:
+        in_features: input size.
+        hidden_sizes: hidden widths (checked by :func:`check_hidden_sizes` by the caller).
+        out_features: output size.
+        activation: hidden activation class.
+        linear: builds a linear layer from ``(in, out)``: :class:`torch.nn.Linear` for one
+            model, ``EnsembleLinear`` with a member count for stacked members. Defaults to
+            :class:`torch.nn.Linear`.
+
+    Examples:
+        >>> from torch import nn
+        >>> from torchrl_mbmf.modules.dynamics import build_mlp
+        >>> build_mlp(4, (8,), 2, nn.ReLU)
+        Sequential(
+          (0): Linear(in_features=4, out_features=8, bias=True)
+          (1): ReLU()
+          (2): Linear(in_features=8, out_features=2, bias=True)
+        )
+    """
+    layers: list[nn.Module] = []
+    width = in_features
+    for h in hidden_sizes:
+        layers += [linear(width, h), activation()]
+        width = h
+    layers.append(linear(width, out_features))
+    return nn.Sequential(*layers)
+
+
 class DeltaDynamicsModel(nn.Module):
     """Deterministic MLP world model predicting the standard-scaled state delta and reward.
 
@@ -104,13 +141,7 @@ class DeltaDynamicsModel(nn.Module):
         self.hidden_sizes = check_hidden_sizes(hidden_sizes)
         self.action_low = float(action_low)
         self.action_high = float(action_high)
-        layers: list[nn.Module] = []
-        width = state_dim + action_dim
-        for h in self.hidden_sizes:
-            layers += [nn.Linear(width, h), activation()]
-            width = h
-        layers.append(nn.Linear(width, state_dim + 1))
-        self.net = nn.Sequential(*layers)
+        self.net = build_mlp(state_dim + action_dim, self.hidden_sizes, state_dim + 1, activation)
         for name, dim in (("state", state_dim), ("action", action_dim), ("delta", state_dim)):
             self.register_buffer(f"{name}_loc", torch.zeros(dim))
             self.register_buffer(f"{name}_scale", torch.ones(dim))
@@ -189,17 +220,25 @@ class DeltaDynamicsModel(nn.Module):
         """Clips the action to ``[action_low, action_high]``."""
         return action.clamp(self.action_low, self.action_high)
 
-    def predict_scaled(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Network output ``[..., state_dim + 1]``: scaled delta then scaled reward."""
+    def scaled_inputs(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Standard-scaled network inputs ``[..., state_dim + action_dim]`` (action clipped).
+
+        Args:
+            state: states ``[..., state_dim]``.
+            action: actions ``[..., action_dim]``.
+        """
         self._check(state, action)
-        x = torch.cat(
+        return torch.cat(
             [
                 (state - self.state_loc) / self.state_scale,
                 (self.clip_action(action) - self.action_loc) / self.action_scale,
             ],
             -1,
         )
-        return self.net(x)
+
+    def predict_scaled(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Network output ``[..., state_dim + 1]``: scaled delta then scaled reward."""
+        return self.net(self.scaled_inputs(state, action))
 
     def scale_targets(
         self, state: torch.Tensor, next_state: torch.Tensor, reward: torch.Tensor
@@ -222,6 +261,52 @@ class DeltaDynamicsModel(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Predicts the next state ``[..., state_dim]`` and reward ``[..., 1]`` in real units."""
         return self.unscale(state, self.predict_scaled(state, action))
+
+    @torch.no_grad()
+    def fold_scaling(
+        self, weights: Sequence[torch.Tensor], biases: Sequence[torch.Tensor]
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Folds the scaling into a chain of linear layers: the one fold of every fast path.
+
+        The input standardisation goes into the first layer (it then reads the raw
+        ``[state, clipped action]``) and the output un-scaling into the last one (it then
+        writes the real ``[delta, reward]``); the layers in between are unchanged. Works on
+        ``nn.Linear`` weights ``[out, in]`` and on stacked member weights ``[K, in, out]``.
+
+        Args:
+            weights: the linear layers' weights, first to last (one entry: first is last).
+            biases: their biases, ``[out]`` or ``[K, out]``.
+
+        Returns:
+            New ``(weights, biases)`` lists; the given tensors are not modified.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+            >>> model = DeltaDynamicsModel(3, 1, hidden_sizes=())
+            >>> model.state_scale.fill_(2.0)
+            tensor([2., 2., 2.])
+            >>> (w,), (b,) = model.fold_scaling([model.net[0].weight], [model.net[0].bias])
+            >>> s, a = torch.randn(5, 3), torch.rand(5, 1) * 2 - 1
+            >>> delta = torch.nn.functional.linear(torch.cat([s, a], -1), w, b)[:, :3]
+            >>> torch.allclose(s + delta, model(s, a)[0], atol=1e-6)
+            True
+        """
+        weights, biases = list(weights), list(biases)
+        in_loc = torch.cat([self.state_loc, self.action_loc])
+        in_scale = torch.cat([self.state_scale, self.action_scale])
+        out_loc = torch.cat([self.delta_loc, self.reward_loc])
+        out_scale = torch.cat([self.delta_scale, self.reward_scale])
+        if weights[0].dim() == 3:  # stacked members [K, in, out]
+            weights[0] = weights[0] / in_scale[:, None]
+            biases[0] = biases[0] - torch.einsum("i,kio->ko", in_loc, weights[0])
+            weights[-1] = weights[-1] * out_scale
+        else:
+            weights[0] = weights[0] / in_scale
+            biases[0] = biases[0] - weights[0] @ in_loc
+            weights[-1] = weights[-1] * out_scale[:, None]
+        biases[-1] = biases[-1] * out_scale + out_loc
+        return weights, biases
 
     @torch.no_grad()
     def fused_step(self) -> Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]:
@@ -248,21 +333,15 @@ class DeltaDynamicsModel(nn.Module):
         first, last = layers[0], layers[-1]
         if not (isinstance(first, nn.Linear) and isinstance(last, nn.Linear)):
             return self.forward
-        in_loc = torch.cat([self.state_loc, self.action_loc])
-        in_scale = torch.cat([self.state_scale, self.action_scale])
-        w1 = first.weight / in_scale
-        b1 = first.bias - w1 @ in_loc
-        out_loc = torch.cat([self.delta_loc, self.reward_loc])
-        out_scale = torch.cat([self.delta_scale, self.reward_scale])
         if len(layers) == 1:
-            w1 = w1 * out_scale[:, None]
-            b1 = b1 * out_scale + out_loc
+            (w1,), (b1,) = self.fold_scaling([first.weight], [first.bias])
             middle: list[nn.Module] = []
             wl, bl = None, None
         else:
+            (w1, wl), (b1, bl) = self.fold_scaling(
+                [first.weight, last.weight], [first.bias, last.bias]
+            )
             middle = layers[1:-1]
-            wl = last.weight * out_scale[:, None]
-            bl = last.bias * out_scale + out_loc
         low, high, d = self.action_low, self.action_high, self.state_dim
 
         def step(state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:

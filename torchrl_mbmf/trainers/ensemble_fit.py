@@ -2,112 +2,31 @@
 
 from __future__ import annotations
 
-import copy
 import logging
-import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tqdm.auto import tqdm
 
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
-from torchrl_mbmf.objectives.dynamics_loss import DynamicsLoss
-from torchrl_mbmf.trainers.dynamics import _transition_tensors
+from torchrl_mbmf.trainers.fit_history import EnsembleFitHistory
+from torchrl_mbmf.trainers.world_model_fit import fit_world_model
 
 logger = logging.getLogger(__name__)
 
 _EVAL_CHUNK = 8192
 
 
-@dataclass
-class EnsembleFitHistory:
-    """Per-epoch record of an ensemble fit: ``fit_dynamics``' record plus the ensemble's fields.
-
-    Attributes:
-        train_loss: mean training loss of each epoch (MSE, or Gaussian NLL for a probabilistic
-            ensemble), averaged over members, each on its own bootstrap sample.
-        val_loss: held-out MSE of the members' means (scaled units) after each epoch,
-            averaged over members: the early-stopping criterion.
-        best_epoch: epoch (0-based) whose weights were kept; ``-1`` when no epoch improved on
-            the starting weights, which are then kept.
-        best_val_loss: held-out loss of the kept weights.
-        stopped_early: whether early stopping ended the fit before ``max_epochs``.
-        num_train: transitions in the training split (each member draws as many).
-        num_val: held-out transitions.
-        seconds: wall time of the fit.
-        member_val_loss: held-out MSE of each member with the kept weights.
-        num_members: ensemble size ``K``.
-        bootstrap: whether each member trained on its own bootstrap resample.
-        unique_fraction: per member, the share of distinct training transitions in its
-            bootstrap sample (about 0.632 for large splits; 1.0 without bootstrap).
-        val_indices: indices (into the fitted data) of the held-out split, which no member
-            trained on: the data to calibrate the disagreement threshold on. Not serialised.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.ensemble_fit import EnsembleFitHistory
-        >>> h = EnsembleFitHistory([1.0, 0.5], [1.1, 0.6], member_val_loss=[0.5, 0.7])
-        >>> h.epochs, h.to_dict()["member_val_loss"]
-        (2, [0.5, 0.7])
-    """
-
-    train_loss: list[float] = field(default_factory=list)
-    val_loss: list[float] = field(default_factory=list)
-    best_epoch: int = -1
-    best_val_loss: float = float("inf")
-    stopped_early: bool = False
-    num_train: int = 0
-    num_val: int = 0
-    seconds: float = 0.0
-    member_val_loss: list[float] = field(default_factory=list)
-    num_members: int = 0
-    bootstrap: bool = True
-    unique_fraction: list[float] = field(default_factory=list)
-    val_indices: torch.Tensor | None = field(default=None, repr=False)
-
-    @property
-    def epochs(self) -> int:
-        """Number of epochs run."""
-        return len(self.train_loss)
-
-    def to_dict(self) -> dict[str, object]:
-        """JSON-serialisable form."""
-        out = {k: v for k, v in asdict(self).items() if k != "val_indices"}
-        return {**out, "epochs": self.epochs}
-
-
-def _member_mse(
-    model: EnsembleDeltaDynamicsModel, inputs: torch.Tensor, targets: torch.Tensor
-) -> torch.Tensor:
-    """Held-out MSE ``[K]`` of every member's mean, in chunks (K copies of the activations)."""
-    n = inputs.shape[0]
-    total = inputs.new_zeros(model.num_members)
-    with torch.no_grad():
-        for i in range(0, n, _EVAL_CHUNK):
-            x, y = inputs[i : i + _EVAL_CHUNK], targets[i : i + _EVAL_CHUNK]
-            total += model.member_mse(x, y) * x.shape[0]
-    return total / n
-
-
 def fit_ensemble(
-    model: EnsembleDeltaDynamicsModel,
-    data: TransitionDataset | TensorDictBase,
-    *,
-    lr: float = 1e-4,
-    batch_size: int = 512,
-    max_epochs: int = 200,
-    val_fraction: float = 0.1,
-    patience: int = 10,
-    bootstrap: bool = True,
-    fit_normalizer: bool = True,
-    seed: int | None = None,
-    progress: bool = False,
-    optimizer: torch.optim.Optimizer | None = None,
+    model: EnsembleDeltaDynamicsModel, data: TransitionDataset | TensorDictBase, **kwargs: Any
 ) -> EnsembleFitHistory:
     """Fits every member on its own bootstrap resample, with early stopping on a held-out split.
 
-    The data handling is :func:`~torchrl_mbmf.trainers.fit_dynamics`' (the same split for the
+    A thin entry point to the one fitter,
+    :func:`~torchrl_mbmf.trainers.world_model_fit.fit_world_model`. The data handling is
+    :func:`~torchrl_mbmf.trainers.fit_dynamics`' (the same split for the
     same ``seed``, scaler fitted on the training split, data scaled once, best held-out weights
     restored at the end, warm start from the current weights). Then each member ``k`` draws
     ``num_train`` indices with replacement from the training split (a torch ``Generator``
@@ -126,20 +45,10 @@ def fit_ensemble(
             (``state``, ``action``, ``("next", "state")``, ``("next", "reward")``).
 
     Keyword Args:
-        lr: Adam learning rate (ignored when ``optimizer`` is given). Defaults to ``1e-4``.
-        batch_size: minibatch size per member. Defaults to ``512``.
-        max_epochs: maximum number of passes over the bootstrap samples. Defaults to ``200``.
-        val_fraction: share of transitions held out for early stopping. Defaults to ``0.1``.
-        patience: epochs without held-out improvement before stopping. Defaults to ``10``.
-        bootstrap: train each member on its own bootstrap resample of the training split.
-            Defaults to ``True``.
-        fit_normalizer: refit the scaling statistics on the training split first.
-            Defaults to ``True``.
-        seed: seed of the split, the bootstrap indices and the minibatch order. Defaults to
-            ``None``.
-        progress: show a tqdm bar over epochs. Defaults to ``False``.
-        optimizer: optimiser over ``model.parameters()`` to continue with. Defaults to a new
-            Adam.
+        **kwargs: the settings of
+            :func:`~torchrl_mbmf.trainers.world_model_fit.fit_world_model` (``lr``,
+            ``batch_size`` per member, ``max_epochs``, ``val_fraction``, ``patience``,
+            ``bootstrap``, ``fit_normalizer``, ``seed``, ``progress``, ``optimizer``).
 
     Returns:
         The :class:`EnsembleFitHistory`.
@@ -164,101 +73,7 @@ def fit_ensemble(
             f"model must be an EnsembleDeltaDynamicsModel, got {type(model).__name__} "
             "(fit a single DeltaDynamicsModel with fit_dynamics)"
         )
-    if not 0.0 < val_fraction < 1.0:
-        raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
-    if batch_size < 1 or max_epochs < 1 or patience < 1:
-        raise ValueError(
-            f"batch_size, max_epochs and patience must be >= 1, got {batch_size}, "
-            f"{max_epochs}, {patience}"
-        )
-    start = time.perf_counter()
-    state, action, next_state, reward = _transition_tensors(data)
-    n = state.shape[0]
-    n_val = max(1, round(n * val_fraction))
-    if n - n_val < 2:
-        raise ValueError(f"need at least {n_val + 2} transitions to fit, got {n}")
-    device = next(model.parameters()).device
-    generator = torch.Generator()
-    if seed is not None:
-        generator.manual_seed(seed)
-    else:
-        generator.seed()
-    perm = torch.randperm(n, generator=generator)
-    val_idx, train_idx = perm[:n_val], perm[n_val:]
-    tensors = [t.to(device) for t in (state, action, next_state, reward)]
-    if fit_normalizer:
-        model.fit_normalizer(*(t[train_idx] for t in tensors))
-    with torch.no_grad():
-        inputs, targets = DynamicsLoss(model).scaled_pairs(*tensors)
-    del tensors
-    train_x, train_y = inputs[train_idx], targets[train_idx]
-    val_x, val_y = inputs[val_idx], targets[val_idx]
-    del inputs, targets
-    k, n_train = model.num_members, len(train_idx)
-    if bootstrap:
-        samples = torch.randint(n_train, (k, n_train), generator=generator)
-    else:
-        samples = torch.arange(n_train).expand(k, n_train)
-    ordered = samples.sort(dim=1).values
-    distinct = 1 + (ordered[:, 1:] != ordered[:, :-1]).sum(1)
-    unique = (distinct / n_train).tolist()
-    samples = samples.to(device)
-    if optimizer is None:
-        optimizer = torch.optim.Adam(model.parameters(), lr=lr)
-    history = EnsembleFitHistory(
-        num_train=n_train,
-        num_val=n_val,
-        num_members=k,
-        bootstrap=bool(bootstrap),
-        unique_fraction=unique,
-        val_indices=val_idx,
-    )
-
-    member_val = _member_mse(model, val_x, val_y)
-    best, best_members = float(member_val.mean()), member_val
-    best_state = copy.deepcopy(model.state_dict())
-    bad_epochs = 0
-    bar = tqdm(range(max_epochs), desc="ensemble", unit="epoch", disable=not progress)
-    for epoch in bar:
-        # an independent random order of every member's sample: [K, n_train] row indices
-        order = torch.rand(k, n_train, generator=generator).argsort(dim=1).to(device)
-        rows = samples.gather(1, order)
-        total = torch.zeros(k, device=device)
-        for i in range(0, n_train, batch_size):
-            idx = rows[:, i : i + batch_size]
-            losses = model.member_loss(train_x[idx], train_y[idx])
-            optimizer.zero_grad(set_to_none=True)
-            losses.sum().backward()
-            optimizer.step()
-            total += losses.detach() * idx.shape[1]
-        train_loss = float(total.mean()) / n_train
-        history.train_loss.append(train_loss)
-        member_val = _member_mse(model, val_x, val_y)
-        current = float(member_val.mean())
-        history.val_loss.append(current)
-        bar.set_postfix(train=f"{train_loss:.4f}", val=f"{current:.4f}")
-        if current < best:
-            best, best_members, bad_epochs, history.best_epoch = current, member_val, 0, epoch
-            best_state = copy.deepcopy(model.state_dict())
-        else:
-            bad_epochs += 1
-            if bad_epochs >= patience:
-                history.stopped_early = epoch + 1 < max_epochs
-                break
-    bar.close()
-    history.best_val_loss = best
-    history.member_val_loss = [float(v) for v in best_members]
-    model.load_state_dict(best_state)
-    history.seconds = time.perf_counter() - start
-    logger.info(
-        "fit_ensemble: %d members, %d epochs, best val loss %.5f at epoch %d (%.1fs)",
-        k,
-        history.epochs,
-        history.best_val_loss,
-        history.best_epoch,
-        history.seconds,
-    )
-    return history
+    return fit_world_model(model, data, **kwargs)
 
 
 @dataclass

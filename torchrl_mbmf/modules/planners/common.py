@@ -1,9 +1,8 @@
-"""Shared stages of the shooting planners: expand, roll out, score, select."""
+"""The shooting planner: expand, roll out with a candidate source, score, select, gather."""
 
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -16,116 +15,23 @@ from torchrl.modules.planners import MPCPlannerBase
 
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
+from torchrl_mbmf.modules.planners.rollout import (
+    CandidateSource,
+    ImaginedRollout,
+    SequenceMixture,
+    Transition,
+    TrustedHorizon,
+    imagine,
+    learned_model,
+    model_transition,
+)
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
-
-
-# ------------------------------------------------------------------ pure helpers
-def expand_candidates(x: torch.Tensor, num_candidates: int) -> torch.Tensor:
-    """Repeats a batch of vectors ``[*B, d]`` as ``[*B, m, d]`` candidates (a view, no copy).
-
-    Args:
-        x: real states or observations ``[*B, d]``.
-        num_candidates: ``m``.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.modules.planners import expand_candidates
-        >>> expand_candidates(torch.zeros(4, 3), 15).shape
-        torch.Size([4, 15, 3])
-    """
-    return x.unsqueeze(-2).expand(*x.shape[:-1], num_candidates, x.shape[-1])
-
-
-def discounted_return(
-    rewards: torch.Tensor,
-    discount: float = 1.0,
-    terminal_value: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """``sum_t discount**t * r_t (+ discount**h * V(s_h))`` over the last dim of ``rewards``.
-
-    Args:
-        rewards: imagined rewards ``[*B, m, h]``.
-        discount: per-step discount. Defaults to ``1.0`` (the thesis' plain sum).
-        terminal_value: value of the last imagined state ``[*B, m]``. Defaults to none.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.modules.planners import discounted_return
-        >>> discounted_return(torch.tensor([[1.0, 1.0, 1.0]]), 0.5, torch.tensor([8.0]))
-        tensor([2.7500])
-    """
-    h = rewards.shape[-1]
-    if discount == 1.0:
-        total = rewards.sum(-1)
-    else:
-        weights = discount ** torch.arange(h, dtype=rewards.dtype, device=rewards.device)
-        total = (rewards * weights).sum(-1)
-    if terminal_value is not None:
-        total = total + discount**h * terminal_value
-    return total
-
-
-def select_best(returns: torch.Tensor) -> torch.Tensor:
-    """Index of the highest-scoring candidate along the last dim (first one on ties).
-
-    Args:
-        returns: candidate scores ``[*B, m]``.
-
-    Returns:
-        ``[*B]`` indices.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.modules.planners import select_best
-        >>> select_best(torch.tensor([[1.0, 3.0, 3.0]]))
-        tensor([1])
-    """
-    return returns.argmax(-1)
-
-
-def gather_candidate(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """Picks candidate ``index[b]`` of every batch element: ``[*B, m, d]`` -> ``[*B, d]``.
-
-    Args:
-        x: per-candidate vectors ``[*B, m, d]``.
-        index: ``[*B]`` candidate indices.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.modules.planners import gather_candidate
-        >>> gather_candidate(torch.arange(6.0).reshape(1, 3, 2), torch.tensor([2]))
-        tensor([[4., 5.]])
-    """
-    idx = index[..., None, None].expand(*index.shape, 1, x.shape[-1])
-    return x.gather(-2, idx).squeeze(-2)
-
-
-@dataclass
-class Plan:
-    """The outcome of one planning call.
-
-    Attributes:
-        first_actions: first action of every candidate ``[*B, m, action_dim]``.
-        returns: score of every candidate ``[*B, m]``.
-        best: index of the chosen candidate ``[*B]``.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.modules.planners import Plan
-        >>> plan = Plan(torch.zeros(2, 3, 1), torch.tensor([[0., 2., 1.], [3., 0., 0.]]),
-        ...             torch.tensor([1, 0]))
-        >>> plan.action.shape
-        torch.Size([2, 1])
-    """
-
-    first_actions: torch.Tensor
-    returns: torch.Tensor
-    best: torch.Tensor
-
-    @property
-    def action(self) -> torch.Tensor:
-        """First action of the best candidate ``[*B, action_dim]``."""
-        return gather_candidate(self.first_actions, self.best)
+from torchrl_mbmf.modules.planners.stages import (
+    Plan,
+    discounted_return,
+    select_best,
+    truncated_return,
+)
 
 
 # --------------------------------------------------------------------- planner
@@ -230,9 +136,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         self.action_dim = int(spec.shape[-1])
         self.register_buffer("action_low", low.clone(), persistent=False)
         self.register_buffer("action_high", high.clone(), persistent=False)
-        from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
-
-        self.fast_path = isinstance(env, LearnedDynamicsEnv)
+        self.fast_path = learned_model(env) is not None
         self._model_step = CachedModelStep(env.dynamics) if self.fast_path else None
         self.state_key: NestedKey = env.state_key if self.fast_path else self.in_keys[0]
         self.actor = actor
@@ -282,20 +186,48 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             step: the imagined step.
         """
 
-    def score_candidates(self, rewards: torch.Tensor, final: TensorDictBase) -> torch.Tensor:
+    def score_candidates(
+        self,
+        rewards: torch.Tensor,
+        final: TensorDictBase | None,
+        trusted_steps: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Candidate scores ``[*B, m]``: discounted return plus the optional terminal value.
 
         Args:
             rewards: imagined rewards ``[*B, m, h]``.
-            final: the learned env's observation entries at the last imagined state,
-                batch ``[*B, m]``.
+            final: the learned env's observation entries at the last (trusted) imagined
+                state, batch ``[*B, m]`` (``None`` when no score reads it).
+            trusted_steps: each candidate's trusted steps ``[*B, m]`` (adaptive horizon:
+                :func:`~torchrl_mbmf.modules.planners.truncated_return`), or ``None`` for
+                the whole horizon. Defaults to ``None``.
         """
         value = self.terminal_value(final) if self.value_module is not None else None
-        return discounted_return(rewards, self.discount, value)
+        if trusted_steps is None:
+            return discounted_return(rewards, self.discount, value)
+        return truncated_return(rewards, trusted_steps, self.discount, value)
 
     def terminal_value(self, final: TensorDictBase) -> torch.Tensor:
         """``value_module``'s value ``[*B, m]`` at the last imagined state."""
         return self.value_module(final.copy()).get(self.value_key)[..., 0]
+
+    def transition(self) -> Transition:
+        """The world model's step for this plan (its cached folded weights)."""
+        return model_transition(self._model_step())
+
+    def horizon_mask(self) -> TrustedHorizon | None:
+        """The adaptive-horizon mask of a plan, or ``None`` for the whole horizon."""
+        return None
+
+    def refined_sequences(self, rollout: ImaginedRollout, returns: torch.Tensor) -> torch.Tensor:
+        """Open-loop sequences ``[*B, n, h, A]`` for the next round (refining planners).
+
+        Called ``refinement_rounds`` times, with the previous round's rollout and scores.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no refinement rounds")
+
+    refinement_rounds = 0
+    plan_class: type[Plan] = Plan
 
     # ---------------------------------------------------------------- rollouts
     def observation_of(self, state: torch.Tensor) -> torch.Tensor:
@@ -303,31 +235,49 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         obs = self.env.observation(state)
         return state if obs is None else obs
 
+    def candidate_source(self) -> CandidateSource:
+        """The candidates' actions: :meth:`sample_candidate_actions` at their observations."""
+
+        def source(state: torch.Tensor, step: int) -> torch.Tensor:
+            return self.sample_candidate_actions(self.observation_of(state), step)
+
+        return source
+
     def _final_entries(self, state: torch.Tensor) -> TensorDictBase:
         entries = {self.state_key: state}
         if self.env.observation_key is not None:
             entries[self.env.observation_key] = self.env.observation(state)
         return TensorDict(entries, batch_size=state.shape[:-1])
 
-    def _rollout_fast(
-        self, state: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, TensorDict | torch.Tensor]:
+    def rollout(
+        self, state: torch.Tensor, source: CandidateSource | None = None
+    ) -> ImaginedRollout:
+        """Rolls the candidates of the real states ``[*B, S]`` out in the learned model.
+
+        Args:
+            state: real states.
+            source: the candidate source. Defaults to :meth:`candidate_source`; the
+                policy-guided planner then runs its fused loop when it can.
+        """
         rollout = self.policy_rollout
-        if self.fused_rollout and rollout is not None and rollout.model_step is self._model_step:
+        if (
+            source is None
+            and self.fused_rollout
+            and rollout is not None
+            and rollout.model_step is self._model_step
+        ):
             out = rollout(state, num_candidates=self.num_candidates, horizon=self.horizon)
             if out is not None:
-                return out
-        predict = self._model_step()
-        s = expand_candidates(state, self.num_candidates)
-        rewards = s.new_empty(*s.shape[:-1], self.horizon)
-        first = None
-        for t in range(self.horizon):
-            a = self.sample_candidate_actions(self.observation_of(s), t)
-            if first is None:
-                first = a
-            s, r = predict(s, a)
-            rewards[..., t] = r[..., 0]
-        return first, rewards, self._final_entries(s)
+                return ImaginedRollout(*out)
+        return imagine(
+            state,
+            num_candidates=self.num_candidates,
+            horizon=self.horizon,
+            source=self.candidate_source() if source is None else source,
+            transition=self.transition(),
+            trust=self.horizon_mask(),
+            keep_actions=self.refinement_rounds > 0,
+        )
 
     def _rollout_generic(
         self, tensordict: TensorDictBase
@@ -362,24 +312,50 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         final = rollout.get("next")[..., -1].select(*self.in_keys)
         return first, rewards, final
 
+    def _scored(
+        self, state: torch.Tensor, source: CandidateSource | None
+    ) -> tuple[ImaginedRollout, torch.Tensor]:
+        out = self.rollout(state, source)
+        final = self._final_entries(out.final_state) if self._reads_final() else None
+        if out.trusted_steps is None:  # the two-argument hook of planners that override it
+            return out, self.score_candidates(out.rewards, final)
+        return out, self.score_candidates(out.rewards, final, out.trusted_steps)
+
     def plan(self, tensordict: TensorDictBase) -> Plan:
         """Expands, rolls out, scores and selects the candidates of every batch element.
+
+        With ``refinement_rounds`` the rounds after the first roll out the mixture of the
+        candidate source and :meth:`refined_sequences`; the plan is then over the candidates
+        of every round.
 
         Args:
             tensordict: real states, batch ``[*B]``.
 
         Returns:
-            The :class:`Plan`.
+            The :class:`Plan`, with the statistics the planner writes.
         """
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-            if self.fast_path:
-                first, rewards, final = self._rollout_fast(tensordict.get(self.state_key))
-            else:
+            if not self.fast_path:
                 first, rewards, final = self._rollout_generic(tensordict)
-            if isinstance(final, torch.Tensor):
-                final = self._final_entries(final) if self._reads_final() else None
-            returns = self.score_candidates(rewards, final)
-            return Plan(first, returns, select_best(returns))
+                returns = self.score_candidates(rewards, final)
+                return Plan(first, returns, select_best(returns))
+            state = tensordict.get(self.state_key)
+            out, returns = self._scored(state, None)
+            if not self.refinement_rounds:
+                best = select_best(returns)
+                return self.plan_class(
+                    out.first_actions, returns, best, out.trusted_steps, out.disagreement
+                )
+            firsts, scores = [out.first_actions], [returns]
+            for _ in range(self.refinement_rounds):
+                source = SequenceMixture(
+                    self.candidate_source(), self.refined_sequences(out, returns)
+                )
+                out, returns = self._scored(state, source)
+                firsts.append(out.first_actions)
+                scores.append(returns)
+            returns = torch.cat(scores, dim=-1)
+            return Plan(torch.cat(firsts, dim=-2), returns, select_best(returns))
 
     def _reads_final(self) -> bool:
         # the stock score reads the last imagined state only for a terminal value
@@ -417,6 +393,9 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
                 out.set(key, lp[key])
             out.set(self.log_prob_key, lp["log_prob"])
         if self.stats_key is not None:
-            out.set((self.stats_key, "best_return"), plan.returns.amax(-1, keepdim=True))
-            out.set((self.stats_key, "mean_return"), plan.returns.mean(-1, keepdim=True))
+            for name, value in plan.statistics().items():
+                out.set((self.stats_key, name), value)
         return out
+
+
+__all__ = ["ShootingPlanner"]

@@ -3,36 +3,21 @@
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
 from torchrl.envs.model_based import ModelBasedEnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel, FusedEnsembleStep
-from torchrl_mbmf.modules.planners.common import (
-    Plan,
-    discounted_return,
-    expand_candidates,
-    select_best,
-)
-from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
+from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 from torchrl_mbmf.modules.planners.policy_guided import PolicyGuidedMPCPlanner
+from torchrl_mbmf.modules.planners.rollout import MemberTransition, TrustedHorizon, learned_model
+from torchrl_mbmf.modules.planners.stages import Plan
 
 
-class _CachedFusedEnsemble(CachedModelStep):
-    """:class:`CachedModelStep` for an ensemble: caches its :class:`FusedEnsembleStep`."""
-
-    def _build(self) -> FusedEnsembleStep:
-        return self.model.fused_members()
-
-
-@dataclass
 class EnsemblePlan(Plan):
-    """The outcome of one ensemble planning call (a :class:`Plan` plus the trust record).
+    """The plan of :class:`EnsemblePolicyGuidedPlanner`: a :class:`Plan` with its trust record.
 
     Attributes:
         first_actions: first action of every candidate ``[*B, m, action_dim]``.
@@ -51,14 +36,6 @@ class EnsemblePlan(Plan):
         >>> plan.effective_horizon
         tensor([2])
     """
-
-    trusted_steps: torch.Tensor
-    disagreement: torch.Tensor | None
-
-    @property
-    def effective_horizon(self) -> torch.Tensor:
-        """Trusted steps of the chosen candidate ``[*B]``."""
-        return self.trusted_steps.gather(-1, self.best.unsqueeze(-1)).squeeze(-1)
 
 
 class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
@@ -104,15 +81,12 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
     Keyword Args:
         disagreement_threshold: disagreement above which an imagined step is not trusted, or
             ``None`` for the full horizon. Defaults to ``None``.
-        num_candidates: candidate trajectories ``m``. Defaults to ``15``.
-        horizon: imagined steps ``h``. Defaults to ``10``.
-        value_module: module writing ``value_key`` (e.g. the PPO critic), evaluated at each
-            candidate's last trusted state. Defaults to none.
-        value_key: output key of ``value_module``. Defaults to ``"state_value"``.
-        discount: discount of the score. Defaults to ``1.0``.
-        action_key: action key. Defaults to ``"action"``.
-        log_prob_key: log-prob key. Defaults to ``"action_log_prob"``.
-        stats_key: key of the plan statistics, or ``None``. Defaults to ``"planner"``.
+        **kwargs: the keyword arguments of
+            :class:`~torchrl_mbmf.modules.planners.ShootingPlanner`, with its defaults (a
+            ``value_module`` is evaluated at each candidate's last trusted state):
+            ``num_candidates`` (``m = 15``), ``horizon`` (``h = 10``), ``value_module``
+            (none: the thesis), ``value_key``, ``discount`` (``1.0``), ``action_key``,
+            ``log_prob_key`` and ``stats_key`` (``"planner"``).
 
     Examples:
         >>> from torchrl_mbmf.envs import EnsembleLearnedDynamicsEnv, make_gym_state_env
@@ -137,20 +111,9 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
         actor: TensorDictModuleBase,
         *,
         disagreement_threshold: float | None = None,
-        num_candidates: int = 15,
-        horizon: int = 10,
-        value_module: TensorDictModuleBase | None = None,
-        value_key: NestedKey = "state_value",
-        discount: float = 1.0,
-        action_key: NestedKey = "action",
-        log_prob_key: NestedKey = "action_log_prob",
-        stats_key: NestedKey | None = "planner",
+        **kwargs: Any,
     ) -> None:
-        from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
-
-        if not isinstance(env, LearnedDynamicsEnv) or not isinstance(
-            env.dynamics, EnsembleDeltaDynamicsModel
-        ):
+        if not isinstance(learned_model(env), EnsembleDeltaDynamicsModel):
             model = getattr(env, "dynamics", None)
             raise TypeError(
                 "env must be a LearnedDynamicsEnv on an EnsembleDeltaDynamicsModel, got "
@@ -169,35 +132,27 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
                     f"disagreement_threshold must be > 0 (or None for the full horizon), got "
                     f"{disagreement_threshold}"
                 )
-        super().__init__(
-            env,
-            actor,
-            num_candidates=num_candidates,
-            horizon=horizon,
-            value_module=value_module,
-            value_key=value_key,
-            discount=discount,
-            action_key=action_key,
-            log_prob_key=log_prob_key,
-            stats_key=stats_key,
-        )
+        if kwargs.get("refinement") is not None:
+            raise ValueError(
+                f"refinement={kwargs['refinement']!r} is not available on the ensemble planner"
+            )
+        super().__init__(env, actor, **kwargs)
         self.disagreement_threshold = (
             None if disagreement_threshold is None else float(disagreement_threshold)
         )
         self.ensemble: EnsembleDeltaDynamicsModel = env.dynamics
-        # the base class' step cache, rebuilt for the ensemble; calling it gives the mean
-        self._model_step = _CachedFusedEnsemble(env.dynamics)
         self.policy_rollout = None  # the fused rollout is for one model, not an ensemble
-        self._last_plan: EnsemblePlan | None = None
         extra = getattr(env, "disagreement_key", None)
         if extra is not None:  # an output of the learned env, not an input of the planner
             self.in_keys = [k for k in self.in_keys if k != extra]
-        if stats_key is not None:
+        if self.stats_key is not None:
             self.out_keys = [
                 *self.out_keys,
-                (stats_key, "effective_horizon"),
-                (stats_key, "disagreement"),
+                (self.stats_key, "effective_horizon"),
+                (self.stats_key, "disagreement"),
             ]
+
+    plan_class = EnsemblePlan
 
     @property
     def tracks_disagreement(self) -> bool:
@@ -205,62 +160,21 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
         return self.disagreement_threshold is not None or self.stats_key is not None
 
     # ------------------------------------------------------------------ stages
-    def _rollout_members(
-        self, state: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor]:
-        """Rolls ``[*B, m]`` candidates, candidate ``i`` in member ``i mod K``.
+    def transition(self) -> MemberTransition:
+        """Each candidate in its own member, with the disagreement when it is needed."""
+        return MemberTransition(self._model_step(), self.tracks_disagreement)
 
-        Returns the first actions ``[*B, m, A]``, rewards ``[*B, m, h]``, trusted steps
-        ``[*B, m]``, disagreement ``[*B, m, h]`` (or ``None``) and each candidate's last
-        trusted state ``[*B, m, S]``.
-        """
-        fused = self._model_step()
-        d, h, thr = self.ensemble.state_dim, self.horizon, self.disagreement_threshold
-        s = expand_candidates(state, self.num_candidates)
-        rewards = s.new_empty(*s.shape[:-1], h)
-        track = self.tracks_disagreement
-        disagreement = s.new_empty(*s.shape[:-1], h) if track else None
-        trusted = torch.zeros(s.shape[:-1], dtype=torch.long, device=s.device)
-        alive = torch.ones(s.shape[:-1], dtype=torch.bool, device=s.device)
-        last, first, own_member = s, None, None
-        for t in range(h):
-            a = self.sample_candidate_actions(self.observation_of(s), t)
-            if first is None:
-                first = a
-            if track:
-                out = fused.members(s, a)  # [K, *B, m, S + 1]: every member on every candidate
-                disagreement[..., t] = fused.disagreement(out)
-                if own_member is None:
-                    own_member = self._own_member_index(out.shape, out.device)
-                out = out.gather(0, own_member).squeeze(0)
-            else:
-                out = fused.cyclic(s, a)  # each candidate through its own member only
-            s = s + out[..., :d]
-            rewards[..., t] = out[..., d]
-            if thr is not None:
-                alive = alive & (disagreement[..., t] <= thr)
-                trusted += alive
-                last = torch.where(alive.unsqueeze(-1), s, last)
-        if thr is None:
-            trusted.fill_(h)
-            last = s
-        return first, rewards, trusted, disagreement, last
-
-    @staticmethod
-    def _own_member_index(shape: torch.Size, device: torch.device) -> torch.Tensor:
-        """Gather index ``[1, *B, m, S + 1]`` picking member ``i mod K`` for candidate ``i``."""
-        k, m = shape[0], shape[-2]
-        member = torch.arange(m, device=device) % k
-        member = member.view(1, *([1] * (len(shape) - 3)), m, 1)
-        return member.expand(1, *shape[1:])
+    def horizon_mask(self) -> TrustedHorizon:
+        """The adaptive horizon of ``disagreement_threshold`` (``None``: the whole horizon)."""
+        return TrustedHorizon(self.disagreement_threshold)
 
     def score_truncated(
-        self, rewards: torch.Tensor, trusted_steps: torch.Tensor, final: TensorDictBase
+        self, rewards: torch.Tensor, trusted_steps: torch.Tensor, final: TensorDictBase | None
     ) -> torch.Tensor:
         """Candidate scores ``[*B, m]`` over each candidate's trusted steps only.
 
-        ``sum_{t < T} discount^t r_t + discount^T V(s_T)`` with ``T = trusted_steps``; equal to
-        the base class' :meth:`score_candidates` when every ``T`` is the horizon.
+        ``sum_{t < T} discount^t r_t + discount^T V(s_T)`` with ``T = trusted_steps``:
+        :meth:`score_candidates` with ``trusted_steps``.
 
         Args:
             rewards: imagined rewards ``[*B, m, h]``.
@@ -268,58 +182,7 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
             final: the learned env's observation entries at each candidate's last trusted
                 state, batch ``[*B, m]``.
         """
-        h = rewards.shape[-1]
-        steps = torch.arange(h, device=rewards.device)
-        kept = rewards.masked_fill(steps >= trusted_steps.unsqueeze(-1), 0.0)
-        total = discounted_return(kept, self.discount)
-        if self.value_module is not None:
-            value = self.terminal_value(final)
-            if self.discount != 1.0:
-                value = value * torch.pow(self.discount, trusted_steps.to(value.dtype))
-            total = total + value
-        return total
-
-    def plan(self, tensordict: TensorDictBase) -> EnsemblePlan:
-        """Rolls out in the members, scores the trusted steps and selects the best candidates.
-
-        Args:
-            tensordict: real states, batch ``[*B]``.
-
-        Returns:
-            The :class:`EnsemblePlan`.
-        """
-        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-            state = tensordict.get(self.state_key)
-            first, rewards, trusted, disagreement, last = self._rollout_members(state)
-            returns = self.score_truncated(rewards, trusted, self._final_entries(last))
-            plan = EnsemblePlan(first, returns, select_best(returns), trusted, disagreement)
-        self._last_plan = plan
-        return plan
-
-    def forward(
-        self,
-        tensordict: TensorDictBase,
-        tensordict_out: TensorDictBase | None = None,
-        **kwargs: object,
-    ) -> TensorDictBase:
-        """Plans, writes the action (log-prob, ``loc``, ``scale``) and the plan statistics.
-
-        Args:
-            tensordict: the real env's tensordict, batch ``[*B]``; its entries are not changed.
-            tensordict_out: where to write. Defaults to ``tensordict``.
-        """
-        self._last_plan = None
-        out = super().forward(tensordict, tensordict_out, **kwargs)
-        plan, self._last_plan = self._last_plan, None
-        if self.stats_key is not None:
-            returns = plan.returns
-            horizon = plan.effective_horizon.to(returns.dtype).unsqueeze(-1)
-            out.set((self.stats_key, "effective_horizon"), horizon)
-            out.set(
-                (self.stats_key, "disagreement"),
-                plan.disagreement.mean((-2, -1)).unsqueeze(-1).to(returns.dtype),
-            )
-        return out
+        return self.score_candidates(rewards, final, trusted_steps)
 
 
 __all__ = ["EnsemblePlan", "EnsemblePolicyGuidedPlanner"]

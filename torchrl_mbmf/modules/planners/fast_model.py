@@ -111,6 +111,60 @@ def _layer_fn(
     return layer
 
 
+Slots = list[tuple[dict[str, torch.Tensor | None], str]]
+
+
+def tensor_slots(module: nn.Module) -> Slots:
+    """Where each parameter and buffer of ``module`` lives: ``(its module's dict, its name)``.
+
+    Collected once; reading the tensors through these slots (:func:`slot_versions`) still sees
+    a replaced tensor (``module.weight = ...``, ``load_state_dict(assign=True)``) as well as
+    in-place updates (version counter) and ``.data`` swaps (data pointer). Only a change of
+    the module tree itself would go unseen.
+
+    Args:
+        module: the module whose tensors are watched.
+
+    Examples:
+        >>> from torch import nn
+        >>> from torchrl_mbmf.modules.planners.fast_model import tensor_slots
+        >>> [name for _, name in tensor_slots(nn.Linear(2, 3))]
+        ['weight', 'bias']
+    """
+    return [
+        (slots, name)
+        for m in module.modules()
+        for slots in (m._parameters, m._buffers)
+        for name in slots
+    ]
+
+
+def slot_versions(slots: Slots) -> tuple[tuple[int, int, int], ...]:
+    """``(id, version, data pointer)`` of every tensor in ``slots``: changes when one does.
+
+    Args:
+        slots: from :func:`tensor_slots`.
+
+    Examples:
+        >>> import torch
+        >>> from torch import nn
+        >>> from torchrl_mbmf.modules.planners.fast_model import slot_versions, tensor_slots
+        >>> layer = nn.Linear(2, 3)
+        >>> slots = tensor_slots(layer)
+        >>> before = slot_versions(slots)
+        >>> with torch.no_grad():
+        ...     _ = layer.bias.zero_()
+        >>> slot_versions(slots) == before
+        False
+    """
+    key = []
+    for owner, name in slots:
+        t = owner[name]
+        if t is not None:
+            key.append((id(t), t._version, t.data_ptr()))
+    return tuple(key)
+
+
 class CachedModelStep:
     """``step(state, action) -> (next_state, reward)`` of a :class:`DeltaDynamicsModel`, cached.
 
@@ -155,24 +209,9 @@ class CachedModelStep:
         return {**self.__dict__, "_key": None, "_step": None, "_layers": None, "_slots": None}
 
     def _version_key(self) -> tuple[tuple[int, int, int], ...]:
-        # Where each parameter and buffer lives (its module's dict and name) is collected once;
-        # reading the tensors through those slots each call still sees a replaced tensor
-        # (``module.weight = ...``, ``load_state_dict(assign=True)``) as well as in-place
-        # updates (version counter) and ``.data`` swaps (data pointer). Only a change of the
-        # module tree itself would go unseen.
         if self._slots is None:
-            self._slots = [
-                (slots, name)
-                for module in self.model.modules()
-                for slots in (module._parameters, module._buffers)
-                for name in slots
-            ]
-        key = []
-        for slots, name in self._slots:
-            t = slots[name]
-            if t is not None:
-                key.append((id(t), t._version, t.data_ptr()))
-        return tuple(key)
+            self._slots = tensor_slots(self.model)
+        return slot_versions(self._slots)
 
     def __call__(self) -> Step:
         """The step for the model's current weights (rebuilt only after they changed)."""
@@ -207,16 +246,7 @@ class CachedModelStep:
         ):
             self._layers = None
             return model.fused_step()
-        weights = [m.weight for m in linears]
-        biases = [m.bias for m in linears]
-        in_loc = torch.cat([model.state_loc, model.action_loc])
-        in_scale = torch.cat([model.state_scale, model.action_scale])
-        weights[0] = weights[0] / in_scale
-        biases[0] = biases[0] - weights[0] @ in_loc
-        out_loc = torch.cat([model.delta_loc, model.reward_loc])
-        out_scale = torch.cat([model.delta_scale, model.reward_scale])
-        weights[-1] = weights[-1] * out_scale[:, None]
-        biases[-1] = biases[-1] * out_scale + out_loc
+        weights, biases = model.fold_scaling([m.weight for m in linears], [m.bias for m in linears])
         fns = [
             _layer_fn(w, b, act, w.numel() >= self.min_packed_size)
             for w, b, act in zip(weights, biases, activations, strict=True)

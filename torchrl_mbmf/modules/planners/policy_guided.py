@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import torch
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
-from torchrl.envs.model_based import ModelBasedEnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
+from typing import Any
 
-from torchrl_mbmf.modules.planners.common import Plan, ShootingPlanner, expand_candidates
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.model_based import ModelBasedEnvBase
+
+from torchrl_mbmf.modules.planners.common import ShootingPlanner
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
+from torchrl_mbmf.modules.planners.rollout import ImaginedRollout
 
 REFINEMENTS = (None, "cem", "mppi")
 
@@ -47,15 +47,6 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             ``log_prob``), reading the policy observation.
 
     Keyword Args:
-        num_candidates: candidate trajectories ``m``. Defaults to ``15``.
-        horizon: imagined steps ``h``. Defaults to ``10``.
-        value_module: module writing ``value_key`` (e.g. the PPO critic); its value at the last
-            imagined state is added to the score. Defaults to none (thesis).
-        value_key: output key of ``value_module``. Defaults to ``"state_value"``.
-        discount: discount of the score. Defaults to ``1.0``.
-        action_key: action key. Defaults to ``"action"``.
-        log_prob_key: log-prob key. Defaults to ``"action_log_prob"``.
-        stats_key: key of the candidates' best/mean predicted return. Defaults to ``"planner"``.
         refinement: ``None`` (the thesis: one round of policy samples), ``"cem"`` or
             ``"mppi"``: after the policy-sampled round, ``iterations`` more rounds refine a
             Gaussian over action sequences ``[h, action_dim]`` fitted to the previous round
@@ -73,6 +64,11 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             Defaults to ``1/3``.
         temperature: MPPI temperature (in units of the round's return std). Defaults to ``1.0``.
         min_std: floor of the refined Gaussian's std (action units). Defaults to ``0.05``.
+        **kwargs: the keyword arguments of
+            :class:`~torchrl_mbmf.modules.planners.ShootingPlanner`, with its defaults:
+            ``num_candidates`` (``m = 15``), ``horizon`` (``h = 10``), ``value_module``
+            (none: the thesis), ``value_key``, ``discount`` (``1.0``), ``action_key``,
+            ``log_prob_key`` and ``stats_key`` (``"planner"``).
 
     Examples:
         >>> from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env
@@ -92,37 +88,20 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         env: ModelBasedEnvBase,
         actor: TensorDictModuleBase,
         *,
-        num_candidates: int = 15,
-        horizon: int = 10,
-        value_module: TensorDictModuleBase | None = None,
-        value_key: NestedKey = "state_value",
-        discount: float = 1.0,
-        action_key: NestedKey = "action",
-        log_prob_key: NestedKey = "action_log_prob",
-        stats_key: NestedKey | None = "planner",
         refinement: str | None = None,
         iterations: int = 2,
         num_elites: int = 3,
         policy_fraction: float = 1 / 3,
         temperature: float = 1.0,
         min_std: float = 0.05,
+        **kwargs: Any,
     ) -> None:
         if actor is None:
             raise TypeError("PolicyGuidedMPCPlanner needs a stochastic actor, got None")
         if refinement not in REFINEMENTS:
             raise ValueError(f"refinement must be one of {REFINEMENTS}, got {refinement!r}")
-        super().__init__(
-            env,
-            num_candidates=num_candidates,
-            horizon=horizon,
-            actor=actor,
-            value_module=value_module,
-            value_key=value_key,
-            discount=discount,
-            action_key=action_key,
-            log_prob_key=log_prob_key,
-            stats_key=stats_key,
-        )
+        super().__init__(env, actor=actor, **kwargs)
+        num_candidates = self.num_candidates
         self.refinement = refinement
         if refinement is not None:
             if not self.fast_path:
@@ -147,6 +126,7 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         self.num_policy = round(policy_fraction * num_candidates)
         self.temperature = float(temperature)
         self.min_std = float(min_std)
+        self.refinement_rounds = self.iterations if refinement is not None else 0
         if self.fast_path and refinement is None and self._samples_the_actor():
             observation = self.env.observation
             self.policy_rollout = PolicyRollout(self._model_step, self.sampler, observation)
@@ -157,7 +137,9 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         return (
             cls.sample_candidate_actions is PolicyGuidedMPCPlanner.sample_candidate_actions
             and cls.observation_of is ShootingPlanner.observation_of
-            and cls._rollout_fast is ShootingPlanner._rollout_fast
+            and cls.rollout is ShootingPlanner.rollout
+            and cls.candidate_source is ShootingPlanner.candidate_source
+            and cls.transition is ShootingPlanner.transition
             and type(self._model_step) is CachedModelStep
         )
 
@@ -166,33 +148,6 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         return self.sampler.sample(observation)
 
     # ------------------------------------------------------------------ refinement
-    def _rollout_sequences(
-        self, state: torch.Tensor, sequences: torch.Tensor | None
-    ) -> tuple[torch.Tensor, torch.Tensor, TensorDictBase]:
-        """Rolls ``m`` candidates; the last ``n`` follow ``sequences`` ``[*B, n, h, A]``.
-
-        The first ``m - n`` candidates (all of them without ``sequences``) sample the policy
-        at each imagined state. Returns every candidate's actions ``[*B, m, h, A]``, rewards
-        ``[*B, m, h]`` and final entries.
-        """
-        predict = self._model_step()
-        s = expand_candidates(state, self.num_candidates)
-        n_pol = self.num_candidates - (0 if sequences is None else sequences.shape[-3])
-        actions = s.new_empty(*s.shape[:-1], self.horizon, self.action_dim)
-        rewards = s.new_empty(*s.shape[:-1], self.horizon)
-        for t in range(self.horizon):
-            if sequences is None:
-                a = self.sample_candidate_actions(self.observation_of(s), t)
-            elif n_pol:
-                a_pol = self.sample_candidate_actions(self.observation_of(s[..., :n_pol, :]), t)
-                a = torch.cat([a_pol, sequences[..., t, :]], dim=-2)
-            else:
-                a = sequences[..., t, :]
-            actions[..., t, :] = a
-            s, r = predict(s, a)
-            rewards[..., t] = r[..., 0]
-        return actions, rewards, self._final_entries(s)
-
     def _refit(self, actions: torch.Tensor, returns: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Mean and std ``[*B, h, A]`` of the refined Gaussian from one round's candidates."""
         if self.refinement == "cem":
@@ -209,35 +164,20 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             std = (w * (actions - mean.unsqueeze(-3)).pow(2)).sum(-3).sqrt()
         return mean, std.clamp_min(self.min_std)
 
-    def plan(self, tensordict: TensorDictBase) -> Plan:
-        """Plans as the base class; with ``refinement`` adds the CEM/MPPI rounds.
+    def refined_sequences(self, rollout: ImaginedRollout, returns: torch.Tensor) -> torch.Tensor:
+        """The next round's open-loop sequences ``[*B, m - round(policy_fraction * m), h, A]``.
+
+        Drawn from the Gaussian refitted to the previous round (CEM or MPPI, see the class
+        docstring) and clipped to the action bounds.
 
         Args:
-            tensordict: real states, batch ``[*B]``.
-
-        Returns:
-            The :class:`~torchrl_mbmf.modules.planners.Plan` over the candidates of every
-            round (``first_actions`` ``[*B, m * (iterations + 1), A]``).
+            rollout: the previous round (with its actions).
+            returns: its scores ``[*B, m]``.
         """
-        if self.refinement is None:
-            return super().plan(tensordict)
-        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-            state = tensordict.get(self.state_key)
-            actions, rewards, final = self._rollout_sequences(state, None)
-            returns = self.score_candidates(rewards, final)
-            firsts, scores = [actions[..., 0, :]], [returns]
-            n_seq = self.num_candidates - self.num_policy
-            for _ in range(self.iterations):
-                mean, std = self._refit(actions, returns)
-                noise = torch.randn(
-                    *mean.shape[:-2], n_seq, *mean.shape[-2:], dtype=mean.dtype, device=mean.device
-                )
-                seqs = mean.unsqueeze(-3) + std.unsqueeze(-3) * noise
-                seqs = torch.maximum(torch.minimum(seqs, self.action_high), self.action_low)
-                actions, rewards, final = self._rollout_sequences(state, seqs)
-                returns = self.score_candidates(rewards, final)
-                firsts.append(actions[..., 0, :])
-                scores.append(returns)
-            first = torch.cat(firsts, dim=-2)
-            returns = torch.cat(scores, dim=-1)
-            return Plan(first, returns, returns.argmax(-1))
+        mean, std = self._refit(rollout.actions, returns)
+        n_seq = self.num_candidates - self.num_policy
+        noise = torch.randn(
+            *mean.shape[:-2], n_seq, *mean.shape[-2:], dtype=mean.dtype, device=mean.device
+        )
+        seqs = mean.unsqueeze(-3) + std.unsqueeze(-3) * noise
+        return torch.maximum(torch.minimum(seqs, self.action_high), self.action_low)

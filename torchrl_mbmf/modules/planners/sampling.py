@@ -13,7 +13,7 @@ from torch import distributions as D
 from torch import nn
 from torchrl.modules import MLP, IndependentNormal, TanhNormal
 
-from torchrl_mbmf.modules.planners.fast_model import addmm_relu
+from torchrl_mbmf.modules.planners.fast_model import addmm_relu, slot_versions, tensor_slots
 
 ParamsFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
@@ -184,18 +184,8 @@ class ActorSampler:
         # the chain holds the live weights; it is rebuilt when a tensor is replaced or moved,
         # and when one changes in place (the constant scale is a snapshot)
         if self._slots is None:
-            self._slots = [
-                (slots, name)
-                for module in self._net.modules()
-                for slots in (module._parameters, module._buffers)
-                for name in slots
-            ]
-        key = []
-        for slots, name in self._slots:
-            t = slots[name]
-            if t is not None:
-                key.append((id(t), t._version, t.data_ptr()))
-        return tuple(key)
+            self._slots = tensor_slots(self._net)
+        return slot_versions(self._slots)
 
     def _build_tight(self) -> tuple[ParamsFn, torch.Tensor | None]:
         layers = _flat_layers(self._net)
