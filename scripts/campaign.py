@@ -328,6 +328,12 @@ def run_one(root: Path, run: QueuedRun, results: Path | None, restart: bool) -> 
     with (root / f"{run.name}.out").open("a") as out:
         code = subprocess.call(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
     _log(root, event="exit", run=run.name, code=code, wall_s=round(time.time() - start, 1))
+    if code == 0 and (folder / "summary.json").exists() and (folder / "world_models").is_dir():
+        # tables 8 and 9 at every refit, while the run's snapshots are on this machine
+        evaluate = [sys.executable, str(ROOT / "recipes" / "evaluate_fits.py"), f"run_dir={folder}"]
+        with (root / f"{run.name}.out").open("a") as out:
+            fits = subprocess.call(evaluate, cwd=ROOT, env=env, stdout=out, stderr=out)
+        _log(root, event="evaluate_fits", run=run.name, code=fits)
     if code == 0 and (folder / "summary.json").exists():
         config = (folder / "config.yaml").read_text()
         if f"run_name: {run.name}\n" not in config:

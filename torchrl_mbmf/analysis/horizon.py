@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
+import yaml
 
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.objectives.open_loop import (
     HorizonError,
     horizon_windows,
+    multistep_mse,
     open_loop_rollout,
 )
+from torchrl_mbmf.trainers.fit_records import fit_snapshots, load_fit_snapshot
 
 
 def horizon_predictions(
@@ -92,3 +96,73 @@ def horizon_table(errors: Sequence[HorizonError]) -> str:
             f"| {e.reward_mse_final:.4g} | {tx:.4g} | {tr:.4g} |"
         )
     return "\n".join(lines)
+
+
+def snapshot_open_loop_errors(
+    run_dir: str | Path,
+    data: TransitionDataset,
+    *,
+    horizons: Sequence[int] = (5, 10, 25),
+    num_starts: int | None = 2000,
+    seed: int = 0,
+) -> list[dict[str, object]]:
+    """Open-loop errors of every world-model fit a training run recorded, on the same data.
+
+    Each snapshot under ``run_dir/world_models/`` (written at every fit, see
+    :mod:`torchrl_mbmf.trainers.fit_records`) is loaded into a model of the run's
+    ``world_model.hidden_sizes`` and evaluated with :func:`multistep_mse` on the same start
+    states, so the rows compare the refits (thesis tables 8 and 9 at each refit).
+
+    Args:
+        run_dir: a training run folder (``config.yaml`` and ``world_models/``).
+        data: held-out real transitions (for example fresh random-policy episodes).
+
+    Keyword Args:
+        horizons: rollout lengths. Defaults to ``(5, 10, 25)``.
+        num_starts: start states sampled. Defaults to ``2000``.
+        seed: seed of the sampling. Defaults to ``0``.
+
+    Returns:
+        One dict per snapshot, oldest first: ``transitions`` (the data it was fitted on) and
+        ``errors`` (one :meth:`HorizonError.to_dict` per horizon).
+
+    Raises:
+        FileNotFoundError: the run has no ``config.yaml``.
+        ValueError: the run recorded no fit, or it planned with an ensemble.
+
+    Examples:
+        >>> import tempfile, pathlib, yaml
+        >>> from torchrl_mbmf.analysis.horizon import snapshot_open_loop_errors
+        >>> from torchrl_mbmf.data import collect_random_transitions
+        >>> from torchrl_mbmf.envs import make_gym_state_env
+        >>> from torchrl_mbmf.modules import DeltaDynamicsModel
+        >>> from torchrl_mbmf.trainers.fit_records import save_fit_snapshot
+        >>> run = pathlib.Path(tempfile.mkdtemp())
+        >>> _ = (run / "config.yaml").write_text(yaml.safe_dump(
+        ...     {"world_model": {"hidden_sizes": [8], "ensemble_size": 1}}))
+        >>> _ = save_fit_snapshot(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), run, 100)
+        >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 200, seed=0)
+        >>> rows = snapshot_open_loop_errors(run, data, horizons=(1, 5), num_starts=20)
+        >>> rows[0]["transitions"], [e["horizon"] for e in rows[0]["errors"]]
+        (100, [1, 5])
+    """
+    run_dir = Path(run_dir)
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    wm = config.get("world_model", {})
+    if int(wm.get("ensemble_size", 1) or 1) > 1:
+        raise ValueError(f"{run_dir} planned with an ensemble; expected a single world model")
+    snapshots = fit_snapshots(run_dir)
+    if not snapshots:
+        raise ValueError(f"{run_dir} recorded no world-model fit (no world_models/fit-*)")
+    td = data.tensors()
+    state_dim = td.get(data.state_key).shape[-1]
+    action_dim = td.get(data.action_key).shape[-1]
+    rows = []
+    for transitions, folder in snapshots:
+        model = DeltaDynamicsModel(
+            state_dim, action_dim, hidden_sizes=tuple(int(h) for h in wm["hidden_sizes"])
+        )
+        load_fit_snapshot(model, folder)
+        errors = multistep_mse(model, data, horizons=horizons, num_starts=num_starts, seed=seed)
+        rows.append({"transitions": transitions, "errors": [e.to_dict() for e in errors]})
+    return rows
