@@ -79,69 +79,21 @@ def sb3_worker(spec: dict[str, Any]) -> None:
     """Trains one SB3 agent (in its own process) and prints its timing as a tagged JSON line."""
     import gymnasium as gym
     import torch
-    from stable_baselines3 import PPO, SAC
-    from torch import nn
+
+    from torchrl_mbmf.baselines.sb3 import make_sb3_model, sb3_grad_steps
 
     torch.set_num_threads(int(spec["threads"]))
-    env = gym.make(ENV_ID)
-    algo = spec["algo"]
-    c = spec["config"]
-    if algo == "ppo":
-        hidden = list(c["hidden_sizes"])
-        model = PPO(
-            "MlpPolicy",
-            env,
-            n_steps=int(c["frames_per_batch"]),
-            batch_size=int(c["minibatch_size"]),
-            n_epochs=int(c["epochs"]),
-            learning_rate=float(c["lr"]),
-            gamma=float(c["gamma"]),
-            gae_lambda=float(c["lmbda"]),
-            clip_range=float(c["clip_epsilon"]),
-            ent_coef=float(c["entropy_coeff"]),
-            vf_coef=float(c["critic_coeff"]),
-            max_grad_norm=float(c["max_grad_norm"]),
-            normalize_advantage=True,
-            policy_kwargs={
-                "net_arch": {"pi": hidden, "vf": hidden},
-                "activation_fn": nn.ReLU,
-                "log_std_init": float(c["init_log_std"]),
-            },
-            seed=int(spec["seed"]),
-            device="cpu",
-            verbose=0,
-        )
-    elif algo == "sac":
-        model = SAC(
-            "MlpPolicy",
-            env,
-            learning_rate=float(c["lr"]),
-            buffer_size=int(c["replay_size"]),
-            learning_starts=int(spec["random_steps"]),
-            batch_size=int(c["batch_size"]),
-            tau=float(c["tau"]),
-            gamma=float(c["gamma"]),
-            train_freq=1,
-            gradient_steps=max(1, int(float(c["utd_ratio"]))),
-            ent_coef=f"auto_{float(c['alpha_init'])}",
-            policy_kwargs={"net_arch": list(c["hidden_sizes"]), "activation_fn": nn.ReLU},
-            seed=int(spec["seed"]),
-            device="cpu",
-            verbose=0,
-        )
-    else:
-        raise ValueError(f"unknown SB3 algorithm {algo!r}; expected 'ppo' or 'sac'")
+    config = dict(spec["config"])
+    if spec["algo"] == "sac":  # the benchmark's own random-step budget
+        config["init_random_frames"] = int(spec["random_steps"])
+    model = make_sb3_model(spec["algo"], gym.make(ENV_ID), config, seed=int(spec["seed"]))
     start = time.perf_counter()
     model.learn(total_timesteps=int(spec["steps"]))
     seconds = time.perf_counter() - start
-    if algo == "ppo":  # _n_updates counts epochs; each is ceil(n_steps / batch_size) steps
-        grad_steps = model._n_updates * math.ceil(model.n_steps / model.batch_size)
-    else:
-        grad_steps = model._n_updates
     result = {
         "steps": int(model.num_timesteps),
         "seconds": seconds,
-        "grad_steps": int(grad_steps),
+        "grad_steps": sb3_grad_steps(model),
         "torch_threads": torch.get_num_threads(),
     }
     print(RESULT_TAG + json.dumps(result), flush=True)
