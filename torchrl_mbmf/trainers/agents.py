@@ -152,10 +152,13 @@ class SACAgent:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_mbmf.envs import make_env
         >>> from torchrl_mbmf.trainers.agents import SACAgent
-        >>> cfg = OmegaConf.load("configs/algo/sac.yaml")
-        >>> agent = SACAgent(make_env("Pendulum-v1", seed=0), cfg, torch.device("cpu"))
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> agent = SACAgent(env, OmegaConf.load("configs/algo/sac.yaml"), torch.device("cpu"))
+        >>> batch = env.rollout(100, agent.actor)
+        >>> agent.update(batch, real_steps=100) is None  # within sac.init_random_frames
+        True
         >>> len(agent.replay)
-        0
+        100
     """
 
     logs_update_count = False

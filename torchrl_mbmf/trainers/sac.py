@@ -91,20 +91,17 @@ class FusedSACUpdate:
         action_key: the action entry. Defaults to ``"action"``.
 
     Examples:
+        The SAC agent of the training loop builds one (``sac.update=fused``, the default):
+
         >>> import torch
-        >>> from torchrl.objectives import SACLoss, SoftUpdate
+        >>> from omegaconf import OmegaConf
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.modules import make_sac_actor_critic
-        >>> from torchrl_mbmf.trainers.sac import FusedSACUpdate
+        >>> from torchrl_mbmf.trainers.agents import SACAgent
         >>> env = make_env("Pendulum-v1", seed=0)
-        >>> actor, qvalue = make_sac_actor_critic(env, hidden_sizes=(16, 16))
-        >>> loss = SACLoss(actor, qvalue, action_spec=env.action_spec_unbatched)
-        >>> loss.make_value_estimator(gamma=0.99)
+        >>> agent = SACAgent(env, OmegaConf.load("configs/algo/sac.yaml"), torch.device("cpu"))
         >>> with torch.no_grad():
-        ...     batch = env.rollout(8, actor)
-        >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
-        >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.005))
-        >>> sorted(step(batch))
+        ...     batch = env.rollout(8, agent.actor)
+        >>> sorted(agent.step(batch))
         ['alpha', 'loss_actor', 'loss_alpha', 'loss_qvalue']
     """
 
@@ -249,21 +246,17 @@ class FusedSACUpdate:
             (no host synchronisation; average them when logging).
 
         Examples:
+            With the SAC agent's replay sampler (the tensors this method reads):
+
             >>> import torch
-            >>> from torchrl.objectives import SACLoss, SoftUpdate
+            >>> from omegaconf import OmegaConf
             >>> from torchrl_mbmf.envs import make_env
-            >>> from torchrl_mbmf.modules import make_sac_actor_critic
-            >>> from torchrl_mbmf.trainers.sac import FusedSACUpdate
-            >>> env = make_env("Pendulum-v1", seed=0)
-            >>> actor, qvalue = make_sac_actor_critic(env, hidden_sizes=(16, 16))
-            >>> loss = SACLoss(actor, qvalue, action_spec=env.action_spec_unbatched)
-            >>> loss.make_value_estimator(gamma=0.99)
-            >>> with torch.no_grad():
-            ...     b = env.rollout(8, actor)
-            >>> optim = torch.optim.Adam(loss.parameters())
-            >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.1))
-            >>> out = step.update(b["observation"], b["action"], b["next", "reward"].squeeze(-1),
-            ...                   b["next", "observation"], b["next", "terminated"].squeeze(-1))
+            >>> from torchrl_mbmf.trainers import agents
+            >>> cfg = OmegaConf.create({"sac": OmegaConf.load("configs/algo/sac.yaml")})
+            >>> env = make_env("Pendulum-v1", seed=1)
+            >>> agent = agents.make_agent("sac", env, cfg, torch.device("cpu"))
+            >>> agent.observe(env.rollout(300, agent.actor, break_when_any_done=False))
+            >>> out = agent.step.update(*agent.sampler())
             >>> out["loss_qvalue"].shape
             torch.Size([])
         """
