@@ -12,6 +12,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
+from torchrl_mbmf.modules.planners.policy_guided import REFINEMENTS
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 
 #: Methods of ``recipes/train.py``.
@@ -24,7 +25,6 @@ SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
 COLLECTORS: tuple[str, ...] = ("lean", "stock")
 PPO_UPDATES: tuple[str, ...] = ("fused", "fused_autograd", "stock")
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
-REFINEMENTS: tuple[str | None, ...] = (None, "cem", "mppi")
 DISTRIBUTIONS: tuple[str, ...] = ("tanh_normal", "normal")
 EARLY_STOPPING: tuple[str, ...] = ("objective", "one_step")
 #: Largest seed NumPy accepts (``np.random.seed``).
