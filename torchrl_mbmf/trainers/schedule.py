@@ -18,7 +18,17 @@ __all__ = ["Actor", "Phase", "PhaseSchedule"]
 
 
 class Phase(enum.StrEnum):
-    """A run's phase (its value is what checkpoints store)."""
+    """A run's phase (its value is what checkpoints store).
+
+    Args:
+        *args: the member's value, e.g. ``Phase("random")``.
+        **kwds: none (the ``enum`` signature).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.schedule import Phase
+        >>> Phase("planning") is Phase.PLANNING
+        True
+    """
 
     RANDOM = "random"
     PLANNING = "planning"
@@ -26,7 +36,17 @@ class Phase(enum.StrEnum):
 
 
 class Actor(enum.Enum):
-    """Which policy collects the real steps."""
+    """Which policy collects the real steps.
+
+    Args:
+        *args: the member's value, e.g. ``Actor("random")``.
+        **kwds: none (the ``enum`` signature).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.schedule import Actor
+        >>> [a.value for a in Actor]
+        ['random', 'planner', 'agent']
+    """
 
     RANDOM = "random"
     PLANNER = "planner"
