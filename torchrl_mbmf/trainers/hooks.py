@@ -1,10 +1,13 @@
 """The hooks of the training loop: logging, progress, model refits, evaluation, checkpoints.
 
 A small hook list of our own rather than :class:`torchrl.trainers.Trainer`'s ``register_op``:
-torchrl's trainer owns one collector for the whole run, while ours closes it and starts the
-next from freshly seeded envs at every checkpoint and phase change (what makes a resumed run
-bit-identical to an uninterrupted one), switches the acting policy between collectors and
-counts random-data steps in the budget. Each hook here is called once per collected batch
+torchrl's trainer iterates one collector for the whole run and takes a fixed
+``optim_steps_per_batch`` steps of one loss module per batch, while ours closes the collector
+and starts the next from freshly seeded envs at every checkpoint and phase change (what makes
+a resumed run bit-identical to an uninterrupted one), switches the acting policy between
+collectors, counts random-data steps in the budget, and leaves each batch's optimisation to
+the agent (PPO's GAE and epochs of minibatches in one fused call; SAC's update count that
+depends on its initial random frames). Each hook here is called once per collected batch
 (never per env step) with the trainer, and reads or advances its progress record.
 
 Stages (in loop order): ``collected`` (the batch is counted), ``updated`` (the agent has
