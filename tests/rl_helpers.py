@@ -12,6 +12,26 @@ from torch import nn
 from torchrl.objectives import ClipPPOLoss, SACLoss
 from torchrl.objectives.value import GAE
 
+#: Overrides of ``recipes/train.py`` that make every method a few-second Pendulum run
+#: (the recipe smoke tests and the pinned runs share them).
+TINY_TRAIN = [
+    "env=pendulum",
+    "ppo.frames_per_batch=192",
+    "planning_updates=2",
+    "world_model.random_steps=300",
+    "world_model.max_epochs=2",
+    "world_model.hidden_sizes=[32,32]",
+    "world_model.refit_every=1",
+    "sac.frames_per_batch=100",
+    "sac.init_random_frames=200",
+    "sac.batch_size=32",
+    "sac.hidden_sizes=[32,32]",
+    "sac.refit_every_steps=300",
+    "eval_every=400",
+    "checkpoint.every_steps=400",
+    "progress=false",
+]
+
 
 def make_test_sac_loss(
     batch_size: int = 8,

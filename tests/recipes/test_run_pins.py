@@ -14,28 +14,12 @@ import sys
 from pathlib import Path
 
 import pytest
+from rl_helpers import TINY_TRAIN
 
 ROOT = Path(__file__).resolve().parents[2]
 # One torch thread: the recorded numbers are those of a single-threaded CPU run.
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
-PENDULUM = [
-    "env=pendulum",
-    "total_steps=900",
-    "ppo.frames_per_batch=192",
-    "planning_updates=2",
-    "world_model.random_steps=300",
-    "world_model.max_epochs=2",
-    "world_model.hidden_sizes=[32,32]",
-    "world_model.refit_every=1",
-    "sac.frames_per_batch=100",
-    "sac.init_random_frames=200",
-    "sac.batch_size=32",
-    "sac.hidden_sizes=[32,32]",
-    "sac.refit_every_steps=300",
-    "eval_every=400",
-    "checkpoint.every_steps=400",
-    "progress=false",
-]
+PENDULUM = ["total_steps=900", *TINY_TRAIN]
 HALF_CHEETAH = [
     "env.num_envs=2",
     "total_steps=2400",
@@ -118,7 +102,7 @@ def test_run_matches_its_pin(tmp_path, name):
     assert digest == expected_digest
 
 
-if __name__ == "__main__":  # prints the pins of the code as it stands
+if __name__ == "__main__":  # prints the pins of the code as it stands (PYTHONPATH=tests)
     import tempfile
 
     with tempfile.TemporaryDirectory() as folder:
