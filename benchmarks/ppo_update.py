@@ -24,9 +24,11 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _common import print_table, write
+from rl_helpers import make_test_ppo
 
-from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, make_test_ppo, ppo_update
+from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
 
 ENV = "HalfCheetah-v5"
 

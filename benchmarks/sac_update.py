@@ -32,13 +32,14 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _common import print_table, write
+from rl_helpers import make_test_sac_loss
 
 from torchrl_mbmf.trainers.sac import (
     FusedSACUpdate,
     ReplaySampler,
     keep_freed_memory,
-    make_test_sac_loss,
     sac_update_step,
 )
 

@@ -22,7 +22,9 @@ from torchrl.objectives import ClipPPOLoss, SoftUpdate
 from torchrl.objectives.value import GAE
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _common import print_table, time_call, write
+from rl_helpers import make_test_sac_loss
 
 from torchrl_mbmf.envs import make_env
 from torchrl_mbmf.modules import make_ppo_actor_critic
@@ -30,7 +32,6 @@ from torchrl_mbmf.trainers import Trainer
 from torchrl_mbmf.trainers.ppo import ppo_update
 from torchrl_mbmf.trainers.sac import (
     FusedSACUpdate,
-    make_test_sac_loss,
     sac_update_step,
 )
 

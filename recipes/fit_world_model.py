@@ -14,7 +14,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from torchrl_mbmf.trainers.world_model_job import run_fit_world_model
+from torchrl_mbmf.analysis.world_model_job import run_fit_world_model
 
 log = logging.getLogger("fit_world_model")
 

@@ -1,11 +1,15 @@
 from __future__ import annotations
 
 import os
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+# the shared test helpers (tests/rl_helpers.py) import as a top-level module
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 @pytest.fixture(autouse=True)

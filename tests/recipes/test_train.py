@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from rl_helpers import TINY_TRAIN as TINY
 
 from torchrl_mbmf.trainers import ConfigError, validate_train_config
 
@@ -18,23 +19,6 @@ ROOT = Path(__file__).resolve().parents[2]
 # two OpenMP threads per process slow small matmuls down several times.
 SUBPROCESS_ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 CONFIGS = str(ROOT / "configs")
-TINY = [
-    "env=pendulum",
-    "ppo.frames_per_batch=192",
-    "planning_updates=2",
-    "world_model.random_steps=300",
-    "world_model.max_epochs=2",
-    "world_model.hidden_sizes=[32,32]",
-    "world_model.refit_every=1",
-    "sac.frames_per_batch=100",
-    "sac.init_random_frames=200",
-    "sac.batch_size=32",
-    "sac.hidden_sizes=[32,32]",
-    "sac.refit_every_steps=300",
-    "eval_every=400",
-    "checkpoint.every_steps=400",
-    "progress=false",
-]
 
 
 def _compose(*overrides: str):

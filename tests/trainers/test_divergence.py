@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-import torchrl_mbmf.trainers.loop as loop
+import torchrl_mbmf.trainers.agents as agents
 from torchrl_mbmf.trainers import Trainer, TrainingDivergedError
 
 CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
@@ -41,7 +41,7 @@ def test_log_refuses_non_finite_scalars(tmp_path, value):
 
 
 def test_diverged_update_stops_the_run(tmp_path, monkeypatch):
-    real = loop.ppo_update
+    real = agents.ppo_update
     calls = []
 
     def diverging(*args, **kwargs):
@@ -51,7 +51,7 @@ def test_diverged_update_stops_the_run(tmp_path, monkeypatch):
             stats["loss_objective"] = float("nan")
         return stats
 
-    monkeypatch.setattr(loop, "ppo_update", diverging)
+    monkeypatch.setattr(agents, "ppo_update", diverging)
     trainer = _trainer(tmp_path, "ppo.update=stock")  # the path that calls ppo_update
     with pytest.raises(TrainingDivergedError, match=r"loss/loss_objective=nan at real step 320"):
         trainer.train()

@@ -11,13 +11,13 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+from torchrl_mbmf.analysis.world_model_job import run_fit_world_model
 from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.envs import make_gym_state_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
 from torchrl_mbmf.objectives.open_loop import open_loop_rollout
 from torchrl_mbmf.trainers import fit_dynamics
 from torchrl_mbmf.trainers.dynamics import MultiStepWindows, fit_dynamics_kwargs
-from torchrl_mbmf.trainers.world_model_job import run_fit_world_model
 
 _ANGLE = 0.3
 _ROTATION = 0.98 * torch.tensor(

@@ -6,10 +6,11 @@ import copy
 
 import pytest
 import torch
+from rl_helpers import make_test_ppo
 from tensordict import TensorDict
 from torchrl.objectives.value import GAE
 
-from torchrl_mbmf.trainers.ppo import PPO_STATS, FusedPPOUpdate, make_test_ppo, ppo_update
+from torchrl_mbmf.trainers.ppo import PPO_STATS, FusedPPOUpdate, ppo_update
 
 
 def _pair(distribution: str, num_envs: int | None, frames: int = 64):

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from rl_helpers import make_test_sac_loss
 from torchrl.objectives import SoftUpdate
 
-from torchrl_mbmf.trainers.sac import FusedSACUpdate, make_test_sac_loss, sac_update_step
+from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 
 
 def _fused_losses(fused: FusedSACUpdate, batch):

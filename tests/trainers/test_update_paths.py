@@ -25,10 +25,10 @@ def test_ppo_update_setting(tmp_path, update, gradients):
     extra = [] if update is None else [f"ppo.update={update}"]
     trainer = _trainer(tmp_path, "method=ppo", *extra)
     if gradients is None:
-        assert trainer.ppo_step is None
+        assert trainer.agent.fused is None
     else:
-        assert isinstance(trainer.ppo_step, FusedPPOUpdate)
-        assert trainer.ppo_step.gradients == gradients
+        assert isinstance(trainer.agent.fused, FusedPPOUpdate)
+        assert trainer.agent.fused.gradients == gradients
 
 
 @pytest.mark.parametrize("update", [None, "stock"])
@@ -36,6 +36,6 @@ def test_sac_update_setting(tmp_path, update):
     extra = [] if update is None else [f"sac.update={update}"]
     trainer = _trainer(tmp_path, "method=sac", *extra)
     fused = update is None  # the default is the fused update
-    assert isinstance(trainer.sac_step, FusedSACUpdate) == fused
-    assert (trainer.replay_sampler is not None) == fused
-    assert bool(trainer.optim.defaults.get("fused")) == fused
+    assert isinstance(trainer.agent.step, FusedSACUpdate) == fused
+    assert (trainer.agent.sampler is not None) == fused
+    assert bool(trainer.agent.optim.defaults.get("fused")) == fused

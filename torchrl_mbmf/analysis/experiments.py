@@ -27,6 +27,7 @@ from torchrl_mbmf.analysis.runs import (
     ppo_maximum_table,
 )
 from torchrl_mbmf.analysis.stats import Interval, bootstrap_ci
+from torchrl_mbmf.trainers.export import load_policy
 
 DEFAULT_HORIZON = 10
 REWARDS = ("default", "head_pen", "shin_pen")
@@ -128,7 +129,6 @@ def _curves_figure(
 def _gait(runs: dict[str, Run], out_dir: Path, *, steps: int, render: bool) -> dict[str, Any]:
     """Gait metrics (and frames) of one trained policy per label."""
     from torchrl_mbmf.analysis.gait import frame_strip, gait_metrics, record_gait, render_states
-    from torchrl_mbmf.trainers.export import load_policy
 
     metrics, out = {}, {"policies": {}, "metrics": {}}
     for label, run in runs.items():

@@ -20,6 +20,7 @@ import numpy as np
 import yaml
 
 from torchrl_mbmf.analysis.stats import Interval, bootstrap_ci, first_step_reaching
+from torchrl_mbmf.trainers.export import variant_tag
 
 MODEL_BASED_METHODS = ("mpc", "ppo_mpc", "sac_mpc")
 RETURN_CURVE = "train/return_last10_mean"
@@ -75,8 +76,6 @@ class Run:
     @property
     def variant(self) -> str:
         """Beyond-the-thesis options of the run (``""`` for the thesis' planner and model)."""
-        from torchrl_mbmf.trainers.config import variant_tag
-
         tag = variant_tag(self.config.get("planner", {}), self.config.get("world_model", {}))
         return tag.removeprefix("__")
 

@@ -39,7 +39,28 @@ class CorruptDatasetError(RuntimeError):
     """A saved dataset is truncated or its content does not match its checksum."""
 
 
-def _done_of(batch: TensorDictBase) -> torch.Tensor:
+def episode_ends(batch: TensorDictBase) -> torch.Tensor:
+    """Where episodes end in a batch of transitions: ``done | terminated | truncated``.
+
+    Args:
+        batch: transitions with ``("next", "done")`` and/or ``terminated`` / ``truncated``.
+
+    Returns:
+        A bool tensor of the batch's shape.
+
+    Raises:
+        KeyError: none of the three flags is present.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_mbmf.data.transitions import episode_ends
+        >>> td = TensorDict(next=TensorDict(terminated=torch.tensor([[False], [True]]),
+        ...                                 truncated=torch.tensor([[True], [False]])),
+        ...                 batch_size=[2])
+        >>> episode_ends(td).tolist()
+        [True, True]
+    """
     nxt = batch.get("next")
     done = nxt.get("done").clone() if "done" in nxt else None
     for key in ("terminated", "truncated"):
@@ -236,7 +257,7 @@ class TransitionDataset:
         for name in self.keys[:4]:
             if not torch.isfinite(batch.get(name)).all():
                 raise ValueError(f"transitions contain NaN or Inf in {name!r}; nothing was stored")
-        done = _done_of(batch)
+        done = episode_ends(batch)
         if self._open_traj is None or self._open_traj.numel() != n_envs:
             self._open_traj = torch.arange(self._next_traj, self._next_traj + n_envs)
             self._next_traj += n_envs

@@ -608,16 +608,7 @@ class DatasetCheckpointAdapter(CheckpointAdapter):
     adapter_id = "torchrl_mbmf.transitions"
 
     def save(self, component: Any, path: Path, *, args: tuple, kwargs: Mapping[str, Any]) -> Any:
-        """Writes the dataset to ``path / "transitions"``.
-
-        Args:
-            component: the dataset.
-            path: its folder.
-
-        Keyword Args:
-            args: unused.
-            kwargs: unused.
-        """
+        """Writes the dataset to ``path / "transitions"`` (``args``, ``kwargs``: unused)."""
         component.dumps(path / "transitions")
 
     def load(self, component: Any, path: Path, **kwargs: Any) -> None:

@@ -12,6 +12,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
+from torchrl_mbmf.modules.planners.policy_guided import REFINEMENTS
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 
 #: Methods of ``recipes/train.py``.
@@ -24,7 +25,6 @@ SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
 COLLECTORS: tuple[str, ...] = ("lean", "stock")
 PPO_UPDATES: tuple[str, ...] = ("fused", "fused_autograd", "stock")
 LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
-REFINEMENTS: tuple[str | None, ...] = (None, "cem", "mppi")
 DISTRIBUTIONS: tuple[str, ...] = ("tanh_normal", "normal")
 EARLY_STOPPING: tuple[str, ...] = ("objective", "one_step")
 #: Largest seed NumPy accepts (``np.random.seed``).
@@ -476,44 +476,6 @@ def _check_world_model_variants(cfg: Any, method: str) -> None:
             "world_model.disagreement_quantile must be in (0, 1), got "
             f"{wm.get('disagreement_quantile')!r}"
         )
-
-
-def variant_tag(planner: Any, world_model: Any | None = None) -> str:
-    """Run-name suffix naming the beyond-the-thesis options in use (empty for the thesis).
-
-    Registered as the OmegaConf resolver ``mbmf_variant`` so that ``run_name`` separates the
-    variants' run folders: ``${mbmf_variant:${planner},${world_model}}``.
-
-    Args:
-        planner: the ``planner`` config node (or dict).
-        world_model: the ``world_model`` config node (or dict). Defaults to none.
-
-    Returns:
-        ``""`` for the thesis' settings, otherwise ``"__"`` and the options joined by ``-``.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.config import variant_tag
-        >>> variant_tag({"terminal_value": False, "refinement": None})
-        ''
-        >>> variant_tag({"terminal_value": True, "refinement": "cem"})
-        '__value-cem'
-    """
-    parts = []
-    if planner.get("terminal_value", False):
-        parts.append("value")
-    if planner.get("refinement"):
-        parts.append(str(planner["refinement"]))
-    wm = world_model or {}
-    if int(wm.get("ensemble_size", 1) or 1) > 1:
-        parts.append(f"ens{int(wm['ensemble_size'])}")
-    if wm.get("adaptive_horizon", False):
-        parts.append("adaptive")
-    if int(wm.get("multi_step", 1) or 1) > 1:
-        parts.append(f"ms{int(wm['multi_step'])}")
-    return "__" + "-".join(parts) if parts else ""
-
-
-OmegaConf.register_new_resolver("mbmf_variant", variant_tag, replace=True)
 
 
 #: Settings a resumed run may change: they do not change what is trained (the budget, the

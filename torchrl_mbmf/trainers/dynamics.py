@@ -34,9 +34,6 @@ __all__ = [
     "transition_tensors",
 ]
 
-# The former private name, kept for callers that have not moved to ``transition_tensors``.
-_transition_tensors = transition_tensors
-
 
 def fit_dynamics_kwargs(world_model: Mapping[str, Any]) -> dict[str, Any]:
     """The keyword arguments of :func:`fit_dynamics` set by a ``world_model`` config node.

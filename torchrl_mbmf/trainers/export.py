@@ -1,4 +1,9 @@
-"""The trained policy of a run folder: written beside every checkpoint, loadable on its own."""
+"""The run folder's schema, shared by the trainers and the analysis.
+
+Its name (the variant suffix of ``run_name``, :func:`variant_tag`, registered as the OmegaConf
+resolver ``mbmf_variant``) and its trained policy (written beside every checkpoint by
+:func:`save_policy`, loadable on its own by :func:`load_policy`).
+"""
 
 from __future__ import annotations
 
@@ -89,3 +94,41 @@ def load_policy(
     saved = torch.load(run_dir / POLICY_FILE, weights_only=True)
     actor.load_state_dict(saved["state_dict"])
     return actor, env, {"real_steps": int(saved["real_steps"]), "config": cfg}
+
+
+def variant_tag(planner: Any, world_model: Any | None = None) -> str:
+    """Run-name suffix naming the beyond-the-thesis options in use (empty for the thesis).
+
+    Registered as the OmegaConf resolver ``mbmf_variant`` so that ``run_name`` separates the
+    variants' run folders: ``${mbmf_variant:${planner},${world_model}}``.
+
+    Args:
+        planner: the ``planner`` config node (or dict).
+        world_model: the ``world_model`` config node (or dict). Defaults to none.
+
+    Returns:
+        ``""`` for the thesis' settings, otherwise ``"__"`` and the options joined by ``-``.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.export import variant_tag
+        >>> variant_tag({"terminal_value": False, "refinement": None})
+        ''
+        >>> variant_tag({"terminal_value": True, "refinement": "cem"})
+        '__value-cem'
+    """
+    parts = []
+    if planner.get("terminal_value", False):
+        parts.append("value")
+    if planner.get("refinement"):
+        parts.append(str(planner["refinement"]))
+    wm = world_model or {}
+    if int(wm.get("ensemble_size", 1) or 1) > 1:
+        parts.append(f"ens{int(wm['ensemble_size'])}")
+    if wm.get("adaptive_horizon", False):
+        parts.append("adaptive")
+    if int(wm.get("multi_step", 1) or 1) > 1:
+        parts.append(f"ms{int(wm['multi_step'])}")
+    return "__" + "-".join(parts) if parts else ""
+
+
+OmegaConf.register_new_resolver("mbmf_variant", variant_tag, replace=True)

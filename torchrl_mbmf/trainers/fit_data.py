@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_mbmf.data.transitions import TransitionDataset, _done_of, consecutive_windows
+from torchrl_mbmf.data.transitions import TransitionDataset, consecutive_windows, episode_ends
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.objectives.dynamics_loss import DynamicsLoss
 
@@ -281,7 +281,7 @@ def transition_windows(data: TransitionDataset | TensorDictBase, length: int) ->
         return data.windows(length)
     # A TensorDict [..., T]: time is its last batch dimension; episodes end at done steps.
     try:
-        done = _done_of(data)
+        done = episode_ends(data)
     except KeyError as err:
         raise ValueError(
             f"multi_step={length} needs ('next', 'done') (or terminated/truncated) flags in the "

@@ -156,8 +156,17 @@ class FusedPPOUpdate:
 
     Examples:
         >>> import torch
-        >>> from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, make_test_ppo
-        >>> loss, gae, batch = make_test_ppo(frames=64)
+        >>> from torchrl.objectives import ClipPPOLoss
+        >>> from torchrl.objectives.value import GAE
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> from torchrl_mbmf.trainers.ppo import FusedPPOUpdate
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> actor, critic = make_ppo_actor_critic(env, hidden_sizes=(16, 16))
+        >>> loss = ClipPPOLoss(actor, critic, normalize_advantage=True)
+        >>> gae = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False)
+        >>> with torch.no_grad():
+        ...     batch = env.rollout(64, actor)
         >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
         >>> update = FusedPPOUpdate(loss, gae, optim, epochs=1, minibatch_size=32)
         >>> update.manual
@@ -887,91 +896,3 @@ def _check_gae(gae: GAE, loss: ClipPPOLoss) -> None:
         bad.append("a value network other than the loss critic")
     if bad:
         raise ValueError(f"FusedPPOUpdate does not support GAE with {', '.join(bad)}")
-
-
-def make_test_ppo(
-    frames: int = 64,
-    num_envs: int | None = None,
-    obs_dim: int = 5,
-    action_dim: int = 2,
-    hidden: int = 16,
-    distribution: str = "tanh_normal",
-) -> tuple[ClipPPOLoss, GAE, TensorDictBase]:
-    """A small ``ClipPPOLoss``, its ``GAE`` and a random rollout batch, for examples and tests.
-
-    The batch carries done/terminated/truncated flags (about 5% each) and log-probabilities of
-    its actions under the actor, as a collector batch does.
-
-    Args:
-        frames: time steps per env. Defaults to 64.
-        num_envs: a leading env dimension (``[num_envs, frames]``), ``None`` for ``[frames]``.
-        obs_dim: observation size. Defaults to 5.
-        action_dim: action size (bounds ``[-1, 1]``). Defaults to 2.
-        hidden: hidden width (two layers). Defaults to 16.
-        distribution: ``"tanh_normal"`` or ``"normal"``, as in
-            :func:`~torchrl_mbmf.modules.make_ppo_actor_critic`.
-
-    Returns:
-        ``(loss, gae, batch)``.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.ppo import make_test_ppo
-        >>> loss, gae, batch = make_test_ppo(frames=8, num_envs=2)
-        >>> batch.batch_size
-        torch.Size([2, 8])
-    """
-    from tensordict import TensorDict
-    from torchrl.data import Bounded, Composite, Unbounded
-    from torchrl.envs import EnvBase
-
-    from torchrl_mbmf.modules import make_ppo_actor_critic
-
-    class _SpecOnly(EnvBase):
-        def __init__(self) -> None:
-            super().__init__()
-            self.observation_spec = Composite(observation=Unbounded((obs_dim,)))
-            self.action_spec = Bounded(-1.0, 1.0, (action_dim,))
-            self.reward_spec = Unbounded((1,))
-
-        def _reset(self, tensordict):  # pragma: no cover - specs only
-            raise NotImplementedError
-
-        def _step(self, tensordict):  # pragma: no cover - specs only
-            raise NotImplementedError
-
-        def _set_seed(self, seed):  # pragma: no cover - specs only
-            return seed
-
-    actor, critic = make_ppo_actor_critic(
-        _SpecOnly(), hidden_sizes=(hidden, hidden), distribution=distribution
-    )
-    loss = ClipPPOLoss(
-        actor,
-        critic,
-        clip_epsilon=0.2,
-        entropy_coeff=1e-4,
-        critic_coeff=0.5,
-        normalize_advantage=True,
-    )
-    gae = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False)
-    shape = (frames,) if num_envs is None else (num_envs, frames)
-    obs = torch.randn(*shape, obs_dim)
-    next_obs = torch.cat([obs[..., 1:, :], torch.randn(*shape[:-1], 1, obs_dim)], -2)
-    terminated = torch.rand(*shape, 1) < 0.05
-    truncated = (torch.rand(*shape, 1) < 0.05) & ~terminated
-    batch = TensorDict(
-        {
-            "observation": obs,
-            "next": {
-                "observation": next_obs,
-                "reward": torch.randn(*shape, 1),
-                "terminated": terminated,
-                "truncated": truncated,
-                "done": terminated | truncated,
-            },
-        },
-        batch_size=shape,
-    )
-    with torch.no_grad():
-        actor(batch)
-    return loss, gae, batch

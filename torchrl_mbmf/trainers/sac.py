@@ -31,10 +31,16 @@ def sac_update_step(
 
     Examples:
         >>> import torch
-        >>> from tensordict import TensorDict
-        >>> from torchrl.objectives import SoftUpdate
-        >>> from torchrl_mbmf.trainers.sac import make_test_sac_loss, sac_update_step
-        >>> loss, batch = make_test_sac_loss(batch_size=8)
+        >>> from torchrl.objectives import SACLoss, SoftUpdate
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.modules import make_sac_actor_critic
+        >>> from torchrl_mbmf.trainers.sac import sac_update_step
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> actor, qvalue = make_sac_actor_critic(env, hidden_sizes=(16, 16))
+        >>> loss = SACLoss(actor, qvalue, action_spec=env.action_spec_unbatched)
+        >>> loss.make_value_estimator(gamma=0.99)
+        >>> with torch.no_grad():
+        ...     batch = env.rollout(8, actor)
         >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
         >>> step = sac_update_step(loss, optim, SoftUpdate(loss, tau=0.005))
         >>> sorted(step(batch))
@@ -85,13 +91,17 @@ class FusedSACUpdate:
         action_key: the action entry. Defaults to ``"action"``.
 
     Examples:
+        The SAC agent of the training loop builds one (``sac.update=fused``, the default):
+
         >>> import torch
-        >>> from torchrl.objectives import SoftUpdate
-        >>> from torchrl_mbmf.trainers.sac import FusedSACUpdate, make_test_sac_loss
-        >>> loss, batch = make_test_sac_loss(batch_size=8)
-        >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
-        >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.005))
-        >>> sorted(step(batch))
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.trainers.agents import SACAgent
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> agent = SACAgent(env, OmegaConf.load("configs/algo/sac.yaml"), torch.device("cpu"))
+        >>> with torch.no_grad():
+        ...     batch = env.rollout(8, agent.actor)
+        >>> sorted(agent.step(batch))
         ['alpha', 'loss_actor', 'loss_alpha', 'loss_qvalue']
     """
 
@@ -236,14 +246,17 @@ class FusedSACUpdate:
             (no host synchronisation; average them when logging).
 
         Examples:
+            With the SAC agent's replay sampler (the tensors this method reads):
+
             >>> import torch
-            >>> from torchrl.objectives import SoftUpdate
-            >>> from torchrl_mbmf.trainers.sac import FusedSACUpdate, make_test_sac_loss
-            >>> loss, b = make_test_sac_loss(batch_size=8)
-            >>> optim = torch.optim.Adam(loss.parameters())
-            >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.1))
-            >>> out = step.update(b["observation"], b["action"], b["next", "reward"].squeeze(-1),
-            ...                   b["next", "observation"], b["next", "terminated"].squeeze(-1))
+            >>> from omegaconf import OmegaConf
+            >>> from torchrl_mbmf.envs import make_env
+            >>> from torchrl_mbmf.trainers import agents
+            >>> cfg = OmegaConf.create({"sac": OmegaConf.load("configs/algo/sac.yaml")})
+            >>> env = make_env("Pendulum-v1", seed=1)
+            >>> agent = agents.make_agent("sac", env, cfg, torch.device("cpu"))
+            >>> agent.observe(env.rollout(300, agent.actor, break_when_any_done=False))
+            >>> out = agent.step.update(*agent.sampler())
             >>> out["loss_qvalue"].shape
             torch.Size([])
         """
@@ -642,79 +655,3 @@ def keep_freed_memory(mmap_threshold: int = 256 * 2**20, trim_threshold: int = 2
     return bool(mallopt(m_mmap_threshold, int(mmap_threshold))) and bool(
         mallopt(m_trim_threshold, int(trim_threshold))
     )
-
-
-def make_test_sac_loss(
-    batch_size: int = 8,
-    obs_dim: int = 3,
-    action_dim: int = 2,
-    hidden: int = 16,
-    activation: type[nn.Module] = nn.Tanh,
-) -> tuple[SACLoss, TensorDictBase]:
-    """A small ``SACLoss`` and a random replay batch, for examples and tests.
-
-    Args:
-        batch_size: batch size. Defaults to 8.
-        obs_dim: observation size. Defaults to 3.
-        action_dim: action size. Defaults to 2.
-        hidden: hidden width (two layers). Defaults to 16.
-        activation: hidden activation of both networks. Defaults to :class:`torch.nn.Tanh`
-            (``MLP``'s default; the training networks use :class:`torch.nn.ReLU`).
-
-    Returns:
-        ``(loss, batch)``.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.sac import make_test_sac_loss
-        >>> loss, batch = make_test_sac_loss(batch_size=4)
-        >>> batch.batch_size
-        torch.Size([4])
-    """
-    from tensordict import TensorDict
-    from torchrl.data import Bounded
-    from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
-
-    spec = Bounded(-2.0, 2.0, (action_dim,))
-    net = nn.Sequential(
-        MLP(
-            in_features=obs_dim,
-            out_features=2 * action_dim,
-            num_cells=[hidden, hidden],
-            activation_class=activation,
-        ),
-        NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
-    )
-    actor = ProbabilisticActor(
-        TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
-        in_keys=["loc", "scale"],
-        spec=spec,
-        distribution_class=TanhNormal,
-        distribution_kwargs={"low": spec.space.low, "high": spec.space.high, "tanh_loc": False},
-        return_log_prob=True,
-    )
-    qvalue = ValueOperator(
-        MLP(
-            in_features=obs_dim + action_dim,
-            out_features=1,
-            num_cells=[hidden, hidden],
-            activation_class=activation,
-        ),
-        in_keys=["observation", "action"],
-    )
-    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=spec)
-    loss.make_value_estimator(gamma=0.99)
-    b = batch_size
-    batch = TensorDict(
-        {
-            "observation": torch.randn(b, obs_dim),
-            "action": torch.rand(b, action_dim) * 4 - 2,
-            "next": {
-                "observation": torch.randn(b, obs_dim),
-                "reward": torch.randn(b, 1),
-                "done": torch.rand(b, 1) < 0.2,
-                "terminated": torch.rand(b, 1) < 0.2,
-            },
-        },
-        batch_size=[b],
-    )
-    return loss, batch

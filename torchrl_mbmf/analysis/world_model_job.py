@@ -53,7 +53,7 @@ def plot_horizon_predictions(
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_gym_state_env
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.world_model_job import plot_horizon_predictions
+        >>> from torchrl_mbmf.analysis.world_model_job import plot_horizon_predictions
         >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 60, seed=0)
         >>> with tempfile.TemporaryDirectory() as d:
         ...     files = plot_horizon_predictions(DeltaDynamicsModel(3, 1), data, [5], Path(d))
@@ -124,7 +124,7 @@ def horizon_comparison_table(
 
     Examples:
         >>> from torchrl_mbmf.analysis import HorizonError
-        >>> from torchrl_mbmf.trainers.world_model_job import horizon_comparison_table
+        >>> from torchrl_mbmf.analysis.world_model_job import horizon_comparison_table
         >>> a, b = HorizonError(5, 3, 2.0, 0.4, 3, 1, []), HorizonError(5, 3, 1.0, 0.5, 2, 1, [])
         >>> print(horizon_comparison_table([a], [b]).splitlines()[2])
         | 5 | 2 | 1 | 0.5 | 0.4 | 0.5 | 1.25 |
@@ -177,7 +177,7 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
         >>> import tempfile
         >>> from pathlib import Path
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_mbmf.trainers.world_model_job import run_fit_world_model
+        >>> from torchrl_mbmf.analysis.world_model_job import run_fit_world_model
         >>> cfg = OmegaConf.create({
         ...     "env": {"id": "Pendulum-v1", "num_envs": 1, "device": "cpu"},
         ...     "reward": {"name": "default", "kwargs": {}},

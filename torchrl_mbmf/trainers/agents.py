@@ -1,0 +1,260 @@
+"""The learning agents of the loop: PPO and SAC, each owning its networks, loss and optimiser.
+
+An agent is built from its own config group (``ppo.*`` or ``sac.*``) and the env, and offers
+the loop one interface: :meth:`~PPOAgent.update` (one collected batch in, the scalars to log
+out, or ``None`` when the batch took no update), the policy's log-std for the logs, the
+components a checkpoint must hold, and the value module a planner may use as its terminal
+value. No setting of one algorithm is read by the other.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModuleBase
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate
+from torchrl.objectives.value import GAE
+
+from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
+from torchrl_mbmf.modules.planners import MinQValue
+from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
+from torchrl_mbmf.trainers.sac import FusedSACUpdate, ReplaySampler, sac_update_step
+
+__all__ = ["PPOAgent", "SACAgent", "make_agent"]
+
+
+class PPOAgent:
+    """Thesis PPO: stock :class:`~torchrl.objectives.ClipPPOLoss` with GAE, Adam.
+
+    One :meth:`update` per collected batch: GAE once, ``epochs`` passes of ``minibatch_size``
+    minibatches (through :class:`~torchrl_mbmf.trainers.ppo.FusedPPOUpdate` unless
+    ``update=stock``).
+
+    Args:
+        env: the training env (sizes the networks).
+        cfg: the ``ppo`` config group (``configs/algo/ppo.yaml``).
+        device: device of the networks and updates.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.trainers.agents import PPOAgent
+        >>> cfg = OmegaConf.load("configs/algo/ppo.yaml")
+        >>> agent = PPOAgent(make_env("Pendulum-v1", seed=0), cfg, torch.device("cpu"))
+        >>> agent.log_std()
+        0.0
+    """
+
+    #: Whether each update's count is logged as ``train/updates``.
+    logs_update_count = True
+
+    def __init__(self, env: EnvBase, cfg: Mapping[str, Any], device: torch.device) -> None:
+        self.cfg = cfg
+        self.device = device
+        self.actor, self.critic = make_ppo_actor_critic(
+            env,
+            hidden_sizes=tuple(cfg.hidden_sizes),
+            distribution=cfg.distribution,
+            init_log_std=float(cfg.init_log_std),
+        )
+        self.actor.to(device)
+        self.critic.to(device)
+        self.loss = ClipPPOLoss(
+            self.actor,
+            self.critic,
+            clip_epsilon=float(cfg.clip_epsilon),
+            entropy_coeff=float(cfg.entropy_coeff),
+            critic_coeff=float(cfg.critic_coeff),
+            normalize_advantage=True,
+        )
+        self.gae = GAE(
+            gamma=float(cfg.gamma),
+            lmbda=float(cfg.lmbda),
+            value_network=self.critic,
+            average_gae=False,
+        )
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.lr))
+        self.replay = None
+        self.fused = None
+        mode = cfg.get("update", "stock")
+        if mode != "stock":
+            self.fused = FusedPPOUpdate(
+                self.loss,
+                self.gae,
+                self.optim,
+                epochs=int(cfg.epochs),
+                minibatch_size=int(cfg.minibatch_size),
+                max_grad_norm=float(cfg.max_grad_norm),
+                gradients="manual" if mode == "fused" else "autograd",
+            )
+        self._scale = next(
+            m for m in self.actor.modules() if isinstance(m, AddStateIndependentNormalScale)
+        )
+
+    def log_std(self, batch: TensorDictBase | None = None) -> float:
+        """The mean of the policy's state-independent log-std parameter (``batch`` unused)."""
+        return float(self._scale.state_independent_scale.detach().mean())
+
+    def observe(self, batch: TensorDictBase) -> None:
+        """PPO keeps no data between batches (for the random-data phase; does nothing)."""
+
+    def update(self, batch: TensorDictBase, real_steps: int) -> dict[str, float] | None:
+        """One PPO iteration on ``batch``; returns the mean loss entries as ``loss/*``.
+
+        Args:
+            batch: a collector batch ``[*B, T]`` with ``action_log_prob``.
+            real_steps: real env steps so far (unused: every PPO batch takes an update).
+        """
+        c = self.cfg
+        if self.device.type != "cpu":
+            batch = batch.to(self.device)
+        if self.fused is not None:
+            stats = self.fused(batch)
+        else:
+            stats = ppo_update(
+                self.loss,
+                self.gae,
+                self.optim,
+                batch,
+                epochs=int(c.epochs),
+                minibatch_size=int(c.minibatch_size),
+                max_grad_norm=float(c.max_grad_norm),
+            )
+        return {f"loss/{k}": v for k, v in stats.items()}
+
+    def checkpoint_components(self) -> dict[str, Any]:
+        """The stateful parts a checkpoint holds (tensor state)."""
+        return {"loss": self.loss, "optim": self.optim}
+
+    def terminal_value(self) -> TensorDictModuleBase:
+        """The planner's terminal value: the critic ``V(s)`` (trained by this loss)."""
+        return self.critic
+
+
+class SACAgent:
+    """Standard SAC: stock :class:`~torchrl.objectives.SACLoss`, a replay buffer, soft targets.
+
+    :meth:`update` stores the batch and takes ``utd_ratio`` updates per collected frame past
+    ``init_random_frames`` (as Stable-Baselines3's ``learning_starts``), through
+    :class:`~torchrl_mbmf.trainers.sac.FusedSACUpdate` unless ``update=stock``.
+
+    Args:
+        env: the training env (sizes the networks and the action bounds).
+        cfg: the ``sac`` config group (``configs/algo/sac.yaml``).
+        device: device of the networks, replay buffer and updates.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.trainers.agents import SACAgent
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> agent = SACAgent(env, OmegaConf.load("configs/algo/sac.yaml"), torch.device("cpu"))
+        >>> batch = env.rollout(100, agent.actor)
+        >>> agent.update(batch, real_steps=100) is None  # within sac.init_random_frames
+        True
+        >>> len(agent.replay)
+        100
+    """
+
+    logs_update_count = False
+
+    def __init__(self, env: EnvBase, cfg: Mapping[str, Any], device: torch.device) -> None:
+        self.cfg = cfg
+        self.device = device
+        self.actor, self.critic = make_sac_actor_critic(env, hidden_sizes=tuple(cfg.hidden_sizes))
+        self.actor.to(device)
+        self.critic.to(device)
+        self.loss = SACLoss(
+            self.actor,
+            self.critic,
+            num_qvalue_nets=2,
+            alpha_init=float(cfg.alpha_init),
+            action_spec=env.full_action_spec_unbatched[env.action_key],
+        )
+        self.loss.to(device)
+        self.loss.make_value_estimator(gamma=float(cfg.gamma))
+        self.target_updater = SoftUpdate(self.loss, tau=float(cfg.tau))
+        fused = cfg.get("update", "stock") == "fused"
+        # the fused path also uses torch's fused Adam (same update up to float rounding)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.lr), fused=fused)
+        self.replay = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(int(cfg.replay_size), device=device),
+            batch_size=int(cfg.batch_size),
+        )
+        self.sampler = None
+        if fused:
+            self.step = FusedSACUpdate(self.loss, self.optim, self.target_updater)
+            self.sampler = ReplaySampler(self.replay, self.step.batch_keys)
+        else:
+            self.step = sac_update_step(self.loss, self.optim, self.target_updater)
+
+    def log_std(self, batch: TensorDictBase | None = None) -> float | None:
+        """The mean log-std of the actor's actions in ``batch`` (``None`` without a scale)."""
+        scale = None if batch is None else batch.get("scale", None)
+        return None if scale is None else float(scale.log().mean())
+
+    def observe(self, batch: TensorDictBase) -> None:
+        """Stores ``batch`` in the replay buffer: the entries ``SACLoss`` reads, flattened."""
+        self.replay.extend(batch.reshape(-1).select(*self.loss.in_keys, strict=False))
+
+    def update(self, batch: TensorDictBase, real_steps: int) -> dict[str, float] | None:
+        """Stores ``batch``, then ``utd_ratio`` updates per frame past ``init_random_frames``.
+
+        Args:
+            batch: a collector batch.
+            real_steps: real env steps so far, ``batch`` included.
+
+        Returns:
+            The mean of each loss entry over the updates as ``loss/*``, or ``None`` when the
+            batch takes no update.
+        """
+        self.observe(batch)
+        past = real_steps - max(int(self.cfg.init_random_frames), real_steps - batch.numel())
+        updates = round(past * float(self.cfg.utd_ratio))
+        if updates <= 0:
+            return None
+        stats: dict[str, list[torch.Tensor]] = {}
+        for _ in range(updates):
+            if self.sampler is not None:
+                out = self.step.update(*self.sampler())
+            else:
+                out = self.step(self.replay.sample())
+            for k, v in out.items():
+                stats.setdefault(k, []).append(torch.as_tensor(v).detach())
+        return {f"loss/{k}": float(torch.stack(v).float().mean()) for k, v in stats.items()}
+
+    def checkpoint_components(self) -> dict[str, Any]:
+        """The stateful parts a checkpoint holds as tensor state (the replay buffer apart)."""
+        return {"loss": self.loss, "optim": self.optim}
+
+    def terminal_value(self) -> TensorDictModuleBase:
+        """The planner's terminal value: ``min_i Q_i`` at the actor's action."""
+        return MinQValue(self.actor, self.critic, self.loss.qvalue_network_params)
+
+
+def make_agent(method_family: str, env: EnvBase, cfg: Any, device: torch.device) -> Any:
+    """The agent of ``method_family`` (``"ppo"`` or ``"sac"``) built from ``cfg[method_family]``.
+
+    Args:
+        method_family: ``"ppo"`` or ``"sac"``.
+        env: the training env.
+        cfg: the whole training config (only its ``method_family`` group is read).
+        device: device of the networks and updates.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.trainers.agents import make_agent
+        >>> cfg = OmegaConf.create({"sac": OmegaConf.load("configs/algo/sac.yaml")})
+        >>> type(make_agent("sac", make_env("Pendulum-v1"), cfg, torch.device("cpu"))).__name__
+        'SACAgent'
+    """
+    agents = {"ppo": PPOAgent, "sac": SACAgent}
+    if method_family not in agents:
+        raise ValueError(f"method_family={method_family!r}; expected one of {sorted(agents)}")
+    return agents[method_family](env, cfg[method_family], device)

@@ -1,0 +1,191 @@
+"""Building a run's parts from its config: envs, collectors, hooks, the evaluation rollout."""
+
+from __future__ import annotations
+
+import copy
+import random
+from typing import Any
+
+import numpy as np
+import torch
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_mbmf.collectors import LeanCollector
+from torchrl_mbmf.envs.factory import make_env
+from torchrl_mbmf.trainers.guards import check_finite
+from torchrl_mbmf.trainers.hooks import (
+    Checkpointing,
+    EpisodeLog,
+    Evaluation,
+    Hooks,
+    ModelData,
+    ModelRefit,
+    ProgressBar,
+    StepTiming,
+)
+
+__all__ = ["evaluate_policy", "make_collector", "make_hooks", "make_train_env", "seed_everything"]
+
+
+def seed_everything(seed: int) -> None:
+    """Seeds Python, NumPy and torch.
+
+    Args:
+        seed: the seed.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.build import seed_everything
+        >>> seed_everything(0)
+    """
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def make_train_env(cfg: Any, seed: int, num_envs: int | None = None) -> EnvBase:
+    """The env of the ``env`` and ``reward`` config groups.
+
+    Args:
+        cfg: the training config.
+        seed: the env seed.
+        num_envs: batched envs; ``env.num_envs`` by default.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"env": {"id": "Pendulum-v1", "num_envs": 2, "device": "cpu"},
+        ...                         "reward": {"name": "default", "kwargs": {}}})
+        >>> make_train_env(cfg, seed=0).batch_size
+        torch.Size([2])
+    """
+    return make_env(
+        cfg.env.id,
+        reward=cfg.reward.name,
+        reward_kwargs=dict(cfg.reward.kwargs or {}),
+        num_envs=int(cfg.env.num_envs if num_envs is None else num_envs),
+        seed=seed,
+        device=cfg.env.device,
+    )
+
+
+def make_collector(
+    env: EnvBase, policy: Any, frames: int, total: int, device: torch.device, kind: str = "lean"
+) -> Any:
+    """The lean collector where the env supports it (``kind="lean"``), else the stock one.
+
+    Args:
+        env: the (CPU) env.
+        policy: the acting policy.
+        frames: frames per batch.
+        total: total frames (``-1``: unbounded).
+        device: the policy's device.
+        kind: ``"lean"`` or ``"stock"`` (``collector`` setting).
+
+    Examples:
+        >>> from torchrl.envs.utils import RandomPolicy
+        >>> from torchrl_mbmf.envs import make_env
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> c = make_collector(env, RandomPolicy(env.full_action_spec), 8, 8, torch.device("cpu"))
+        >>> next(iter(c)).numel()
+        8
+    """
+    if kind == "lean" and LeanCollector.supports(env):
+        return LeanCollector(
+            env, policy, frames_per_batch=frames, total_frames=total, policy_device=device
+        )
+    devices = {}
+    if device.type != "cpu":
+        devices = {"policy_device": device, "env_device": "cpu", "storing_device": "cpu"}
+    return Collector(
+        env,
+        policy,
+        frames_per_batch=frames,
+        total_frames=total,
+        auto_register_policy_transforms=False,
+        **devices,
+    )
+
+
+def evaluate_policy(
+    env: EnvBase,
+    actor: Any,
+    episodes: int,
+    device: torch.device,
+    kind: str = "lean",
+    step: int = 0,
+) -> float:
+    """Mean return of ``actor`` alone, deterministic, over ``episodes`` episodes of ``env``.
+
+    Args:
+        env: the evaluation env (one env; seeded by the caller).
+        actor: the policy.
+        episodes: episodes to average.
+        device: the actor's device.
+        kind: the collection path (``"lean"``: the same episode as ``env.rollout``, tested).
+        step: the real-step count named if the return is not finite.
+
+    Examples:
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> actor, _ = make_ppo_actor_critic(env, hidden_sizes=(8,))
+        >>> evaluate_policy(env, actor, 1, torch.device("cpu")) < 0
+        True
+    """
+    returns = []
+    lean = kind == "lean" and LeanCollector.supports(env)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(int(episodes)):
+            if lean:
+                td = LeanCollector(
+                    env,
+                    actor,
+                    frames_per_batch=1,
+                    exploration_type=ExplorationType.DETERMINISTIC,
+                    policy_device=device,
+                ).episode()
+            elif device.type != "cpu":
+                # the stock env rollout runs the policy where the env is: a CPU copy
+                td = env.rollout(100_000, copy.deepcopy(actor).to("cpu"))
+            else:
+                td = env.rollout(100_000, actor)
+            returns.append(float(td.get(("next", "reward")).sum()))
+    mean = float(np.mean(returns))
+    check_finite({"eval/return": mean}, step)
+    return mean
+
+
+def make_hooks(cfg: Any, model_based: bool) -> tuple[Hooks, dict[str, Any]]:
+    """The loop's hooks of ``cfg``, and the ones the loop also calls by name.
+
+    Args:
+        cfg: the training config.
+        model_based: whether the run has a world model (data and refit hooks).
+
+    Returns:
+        ``(hooks, named)`` with ``named`` holding ``bar``, ``timing`` and ``checkpoints``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"total_steps": 10, "method": "ppo", "progress": False,
+        ...     "eval_every": 5, "eval_episodes": 1, "checkpoint": {"every_steps": 5}})
+        >>> hooks, named = make_hooks(cfg, model_based=False)
+        >>> [type(h).__name__ for h in hooks.stages["updated"]]
+        ['StepTiming', 'Evaluation']
+    """
+    named = {
+        "bar": ProgressBar(int(cfg.total_steps), cfg.method, bool(cfg.progress)),
+        "timing": StepTiming(),
+        "checkpoints": Checkpointing(int(cfg.checkpoint.every_steps)),
+    }
+    hooks = Hooks()
+    hooks.register("collected", named["bar"])
+    hooks.register("collected", EpisodeLog())
+    if model_based:
+        hooks.register("collected", ModelData())
+        hooks.register("updated", ModelRefit())
+    hooks.register("updated", named["timing"])
+    hooks.register("updated", Evaluation(int(cfg.eval_every), int(cfg.eval_episodes)))
+    hooks.register("round_end", named["checkpoints"])
+    return hooks, named

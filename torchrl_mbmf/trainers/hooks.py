@@ -1,0 +1,264 @@
+"""The hooks of the training loop: logging, progress, model refits, evaluation, checkpoints.
+
+A small hook list of our own rather than :class:`torchrl.trainers.Trainer`'s ``register_op``:
+torchrl's trainer iterates one collector for the whole run and takes a fixed
+``optim_steps_per_batch`` steps of one loss module per batch, while ours closes the collector
+and starts the next from freshly seeded envs at every checkpoint and phase change (what makes
+a resumed run bit-identical to an uninterrupted one), switches the acting policy between
+collectors, counts random-data steps in the budget, and leaves each batch's optimisation to
+the agent (PPO's GAE and epochs of minibatches in one fused call; SAC's update count that
+depends on its initial random frames). Each hook here is called once per collected batch
+(never per env step) with the trainer, and reads or advances its progress record.
+
+Stages (in loop order): ``collected`` (the batch is counted), ``updated`` (the agent has
+learnt from it) and ``round_end`` (its collector is closed).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from tensordict import TensorDictBase
+from tqdm.auto import tqdm
+
+from torchrl_mbmf.trainers.schedule import Actor
+
+__all__ = [
+    "STAGES",
+    "Checkpointing",
+    "EpisodeLog",
+    "Evaluation",
+    "Hooks",
+    "ModelData",
+    "ModelRefit",
+    "ProgressBar",
+    "StepTiming",
+]
+
+#: The stages a hook can run at, in loop order.
+STAGES: tuple[str, ...] = ("collected", "updated", "round_end")
+
+Hook = Callable[[Any, TensorDictBase | None], None]
+
+
+class Hooks:
+    """Ordered hooks per stage.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import Hooks
+        >>> hooks, seen = Hooks(), []
+        >>> hooks.register("collected", lambda trainer, batch: seen.append(batch))
+        >>> hooks.run("collected", None, 1)
+        >>> seen
+        [1]
+    """
+
+    def __init__(self) -> None:
+        self.stages: dict[str, list[Hook]] = {stage: [] for stage in STAGES}
+
+    def register(self, stage: str, hook: Hook) -> None:
+        """Appends ``hook`` (called as ``hook(trainer, batch)``) to ``stage``."""
+        if stage not in self.stages:
+            raise ValueError(f"stage={stage!r} is not a hook stage; allowed: {list(STAGES)}")
+        self.stages[stage].append(hook)
+
+    def run(self, stage: str, trainer: Any, batch: TensorDictBase | None = None) -> None:
+        """Calls the hooks of ``stage`` in registration order."""
+        for hook in self.stages[stage]:
+            hook(trainer, batch)
+
+
+class ProgressBar:
+    """A ``tqdm`` bar of real steps (``collected``); disabled with ``progress=false``.
+
+    Args:
+        total: the run's real-step budget.
+        desc: the bar's label.
+        enabled: whether the bar shows.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import ProgressBar
+        >>> ProgressBar(100, "ppo", enabled=False).bar is None
+        True
+    """
+
+    def __init__(self, total: int, desc: str, enabled: bool) -> None:
+        self.total, self.desc, self.enabled = total, desc, enabled
+        self.bar: tqdm | None = None
+
+    def open(self, initial: int) -> None:
+        """Shows the bar from ``initial`` steps."""
+        self.bar = tqdm(
+            total=self.total, initial=initial, desc=self.desc, unit="step", disable=not self.enabled
+        )
+
+    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        if self.bar is not None:
+            self.bar.update(batch.numel())
+
+    def close(self) -> None:
+        """Closes the bar."""
+        if self.bar is not None:
+            self.bar.close()
+
+
+class EpisodeLog:
+    """Logs each finished episode's return and the last-10 statistics (``collected``).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import EpisodeLog
+        >>> EpisodeLog.WINDOW
+        10
+    """
+
+    WINDOW = 10
+
+    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        progress = trainer.progress
+        done = batch.get(("next", "done"))[..., 0]
+        if not done.any():
+            return
+        returns = batch.get(("next", "episode_reward"))[..., 0][done]
+        last = deque(progress["last_returns"], maxlen=self.WINDOW)
+        for r in returns.tolist():
+            progress["episodes"] += 1
+            last.append(r)
+            trainer.log({"train/episode_return": r})
+        progress["last_returns"] = list(last)
+        arr = np.asarray(last)
+        trainer.log(
+            {
+                "train/return_last10_mean": arr.mean(),
+                "train/return_last10_min": arr.min(),
+                "train/return_last10_max": arr.max(),
+                "train/episodes": progress["episodes"],
+                "train/real_steps_without_random": progress["real_steps"]
+                - progress["random_steps"],
+            }
+        )
+
+
+class ModelData:
+    """Adds random-data and planner batches to the world model's dataset (``collected``).
+
+    Also logs the planner's statistics of a planned batch.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import ModelData
+        >>> callable(ModelData())
+        True
+    """
+
+    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        if trainer.acting is Actor.AGENT:
+            return
+        trainer.world.dataset.extend(batch)
+        trainer.log(trainer.world.planner_scalars(batch))
+
+
+class ModelRefit:
+    """Refits the world model when the schedule says so (``updated``).
+
+    The refit's seed is ``seed + updates``; with an adaptive-horizon ensemble the refit
+    also calibrates the planner's disagreement threshold.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import ModelRefit
+        >>> callable(ModelRefit())
+        True
+    """
+
+    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        if trainer.schedule.refit_due(trainer.progress, trainer.acting is Actor.PLANNER):
+            trainer.refit_model()
+
+
+class StepTiming:
+    """Logs the batch's learning time and the run's steps per second (``updated``).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import StepTiming
+        >>> StepTiming().start_steps
+        0
+    """
+
+    def __init__(self) -> None:
+        self.start, self.start_steps = time.perf_counter(), 0
+
+    def open(self, steps: int) -> None:
+        """Counts the pace from now and ``steps`` real steps."""
+        self.start, self.start_steps = time.perf_counter(), steps
+
+    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        now = time.perf_counter()
+        trainer.log(
+            {
+                "time/update_s": now - trainer.batch_time,
+                "time/steps_per_s": (trainer.progress["real_steps"] - self.start_steps)
+                / max(1e-9, now - self.start),
+            }
+        )
+
+
+class Evaluation:
+    """Evaluates the policy alone every ``every`` real steps (``updated``).
+
+    Args:
+        every: real steps between two evaluations (the first at the first batch).
+        episodes: episodes per evaluation; 0 counts the schedule without evaluating.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import Evaluation
+        >>> Evaluation(every=1000, episodes=0).episodes
+        0
+    """
+
+    def __init__(self, every: int, episodes: int) -> None:
+        self.every, self.episodes = every, episodes
+
+    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        progress = trainer.progress
+        if progress["real_steps"] >= progress["next_eval"]:
+            if self.episodes > 0:
+                trainer.log({"eval/return": trainer.evaluate()})
+            progress["next_eval"] += self.every
+
+
+class Checkpointing:
+    """Writes a checkpoint when one is due, between two collectors (``round_end``).
+
+    Args:
+        every: real steps between two checkpoints.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import Checkpointing
+        >>> progress = {"real_steps": 450, "next_checkpoint": 400}
+        >>> Checkpointing(every=400).due(progress)
+        True
+    """
+
+    def __init__(self, every: int) -> None:
+        self.every = every
+
+    @staticmethod
+    def due(progress: dict[str, Any]) -> bool:
+        """Whether the run has passed its next checkpoint step."""
+        return progress["real_steps"] >= progress["next_checkpoint"]
+
+    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        progress = trainer.progress
+        if self.due(progress):
+            while progress["next_checkpoint"] <= progress["real_steps"]:
+                progress["next_checkpoint"] += self.every
+            trainer.save_checkpoint()
