@@ -15,18 +15,15 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import platform
 import shutil
-import subprocess
 import time
 from pathlib import Path
-from typing import Any
 
 import gymnasium as gym
 import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
+from stable_baselines3 import __version__ as sb3v
 from torchrl.record.loggers import CSVLogger
 
 from torchrl_mbmf.baselines.sb3 import (
@@ -35,40 +32,12 @@ from torchrl_mbmf.baselines.sb3 import (
     make_sb3_model,
     sb3_grad_steps,
 )
+from torchrl_mbmf.trainers.resume import write_run_record
 
 log = logging.getLogger("sb3_reference")
 
 #: The thesis' budgets of the reference runs (experiments 2 and 4).
 THESIS_STEPS = {"ppo": 1_000_000, "sac": 200_000}
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=5,
-            cwd=Path(__file__).resolve().parent,
-        )
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def _machine() -> dict[str, Any]:
-    import stable_baselines3
-    import torchrl
-
-    return {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torchrl": torchrl.__version__,
-        "stable_baselines3": stable_baselines3.__version__,
-        "cpu_count": os.cpu_count(),
-        "machine": platform.machine(),
-        "torch_threads": torch.get_num_threads(),
-    }
 
 
 def _check(cfg: DictConfig, run_dir: Path) -> int:
@@ -111,9 +80,9 @@ def main(cfg: DictConfig) -> None:
         "run_dir": str(cfg.run_dir),
     }
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(record)))
-    (run_dir / "git_commit.txt").write_text(_commit() + "\n")
-    (run_dir / "machine.json").write_text(json.dumps(_machine(), indent=2) + "\n")
+    write_run_record(run_dir, OmegaConf.create(record))
+    machine = {**json.loads((run_dir / "machine.json").read_text()), "stable_baselines3": sb3v}
+    (run_dir / "machine.json").write_text(json.dumps(machine, indent=2) + "\n")
 
     model = make_sb3_model(cfg.method, gym.make(cfg.env_id), settings, seed=int(cfg.seed))
     callback = RunFolderCallback(

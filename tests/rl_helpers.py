@@ -32,6 +32,23 @@ TINY_TRAIN = [
     "progress=false",
 ]
 
+#: Overrides of a tiny HalfCheetah PPO-MPC run (the budget, ``total_steps``, is the caller's).
+TINY_HALF_CHEETAH = [
+    "method=ppo_mpc",
+    "ppo.frames_per_batch=64",
+    "ppo.minibatch_size=32",
+    "planning_updates=2",
+    "world_model.random_steps=150",
+    "world_model.max_epochs=1",
+    "world_model.hidden_sizes=[16]",
+    "planner.horizon=3",
+    "planner.num_candidates=4",
+    "eval_every=100000",
+    "eval_episodes=1",
+    "checkpoint.every_steps=100000",
+    "progress=false",
+]
+
 
 def make_test_sac_loss(
     batch_size: int = 8,

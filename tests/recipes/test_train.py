@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from rl_helpers import TINY_HALF_CHEETAH
 from rl_helpers import TINY_TRAIN as TINY
 
 from torchrl_mbmf.trainers import ConfigError, validate_train_config
@@ -103,23 +104,7 @@ def test_method_smoke_run(tmp_path, method, extra):
 
 def test_half_cheetah_ppo_mpc_tiny(tmp_path):
     run = tmp_path / "hc"
-    proc = _run(
-        run,
-        "method=ppo_mpc",
-        "total_steps=300",
-        "ppo.frames_per_batch=64",
-        "ppo.minibatch_size=32",
-        "planning_updates=2",
-        "world_model.random_steps=150",
-        "world_model.max_epochs=1",
-        "world_model.hidden_sizes=[16]",
-        "planner.horizon=3",
-        "planner.num_candidates=4",
-        "eval_every=100000",
-        "eval_episodes=1",
-        "checkpoint.every_steps=100000",
-        "progress=false",
-    )
+    proc = _run(run, *TINY_HALF_CHEETAH, "total_steps=300")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads((run / "summary.json").read_text())["env"] == "HalfCheetah-v5"
 

@@ -103,7 +103,7 @@ def test_resume_changes_split():
             "checkpoint.every_steps=100",
             "logger.backend=tensorboard",
             "total_steps=5",
-            "threads=1",
+            "threads=2",
             "eval_episodes=3",
             "experiment=exp1_horizon",
         )

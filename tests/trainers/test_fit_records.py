@@ -62,7 +62,7 @@ def test_each_fit_is_snapshotted_and_each_refit_logs_the_replaced_models_heldout
     assert logged == [400, 592, 784]
     # the last snapshot is the model the run ended with
     last = load_fit_snapshot(DeltaDynamicsModel(3, 1, hidden_sizes=(16, 16)), fits[-1][1])
-    ours, saved = trainer.model.state_dict(), last.state_dict()
+    ours, saved = trainer.world.model.state_dict(), last.state_dict()
     assert list(ours) == list(saved)
     assert all(torch.equal(ours[k], saved[k]) for k in ours)
     # held-out errors at the two refits only (the first fit has no predecessor)
