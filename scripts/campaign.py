@@ -410,7 +410,9 @@ def main() -> None:
     parser.add_argument("--root", type=Path, required=True, help="run folders (outside git)")
     parser.add_argument("--queue", type=Path, required=True, help="the queue file")
     parser.add_argument("--results", type=Path, help="copy finished runs' small files here")
-    parser.add_argument("--stop-at", help="HH:MM UTC when the session ends (today)")
+    parser.add_argument(
+        "--stop-at", help="HH:MM UTC when the session ends (the next one: today or tomorrow)"
+    )
     parser.add_argument("--status", action="store_true", help="print each run's state")
     parser.add_argument(
         "--snapshot", action="store_true", help="copy unfinished runs to --results, then exit"
@@ -446,8 +448,8 @@ def main() -> None:
         hour, minute = (int(x) for x in args.stop_at.split(":"))
         now = dt.datetime.now(dt.UTC)
         stop_at = now.replace(hour=hour, minute=minute, second=0, microsecond=0)
-        if stop_at < now:
-            raise SystemExit(f"--stop-at {args.stop_at} is already past ({now:%H:%M} UTC)")
+        if stop_at < now:  # a session that runs past midnight: the next HH:MM is tomorrow's
+            stop_at += dt.timedelta(days=1)
     failed: set[str] = set()
     while (run := claim_next(root, queue, stop_at, frozenset(failed))) is not None:
         restart = not run.resumable and (root / run.name / "logs").exists()
