@@ -261,3 +261,112 @@ def test_sb3_references_are_compared_with_ours_and_kept_out_of_the_thesis_tables
     text = write_report({"thesis": tmp_path / "out"}, tmp_path / "REPORT.md")
     assert "### Our baselines vs Stable-Baselines3" in text
     assert "| sb3_sac | " in text
+
+
+def _loop_ratio_interval(reference, candidate, grid, n_resamples, seed):
+    """ratio_interval written out one resample at a time with scipy's trim_mean."""
+    from scipy.stats import trim_mean
+
+    rng = np.random.default_rng(seed)
+    ref_idx = rng.integers(0, len(reference), (n_resamples, len(reference)))
+    cand_idx = rng.integers(0, len(candidate), (n_resamples, len(candidate)))
+    ratios = []
+    for b in range(n_resamples):
+        ref = trim_mean(reference[ref_idx[b]], 0.25, axis=0)
+        cand = trim_mean(candidate[cand_idx[b]], 0.25, axis=0)
+        threshold = ref.max()
+        ref_step = grid[np.nonzero(ref >= threshold)[0][0]]
+        hit = np.nonzero(cand >= threshold)[0]
+        ratios.append(grid[hit[0]] / ref_step if hit.size else np.inf)
+    return np.percentile(ratios, [2.5, 97.5], method="lower"), np.isfinite(ratios).mean()
+
+
+@pytest.mark.parametrize("seeds", [(3, 3), (4, 2), (5, 3)])
+def test_ratio_interval_equals_a_resample_by_resample_loop(seeds):
+    from torchrl_mbmf.analysis.runs import ratio_interval
+
+    rng = np.random.default_rng(1)
+    grid = np.arange(1, 41) * 1000
+    trend = np.linspace(0, 100, grid.size)
+    reference = trend + rng.normal(0, 15, (seeds[0], grid.size))
+    candidate = 1.3 * trend + rng.normal(0, 25, (seeds[1], grid.size))
+    out = ratio_interval(reference, candidate, grid, n_resamples=300, seed=4)
+    (low, high), reached = _loop_ratio_interval(reference, candidate, grid, 300, 4)
+    assert (out["low"], out["high"]) == (low, high)
+    assert out["reached"] == pytest.approx(reached)
+
+
+def test_ratio_interval_of_a_clearly_faster_and_a_never_reaching_candidate():
+    from torchrl_mbmf.analysis.runs import ratio_interval
+
+    grid = np.arange(1, 11) * 100
+    reference = np.stack([np.linspace(0, 10, 10) + s for s in range(3)])
+    faster = np.minimum(reference * 3, 50.0)
+    out = ratio_interval(reference, faster, grid)
+    assert out["high"] < 1 and out["reached"] == 1.0
+    never = reference - 100
+    out = ratio_interval(reference, never, grid)
+    assert out == {"low": np.inf, "high": np.inf, "reached": 0.0}
+    with pytest.raises(ValueError, match=r"candidate curves have shape \(10,\)"):
+        ratio_interval(reference, never[0], grid)
+
+
+def test_ppo_maximum_table_gives_each_ratio_its_interval(tmp_path):
+    for seed in range(3):
+        make_run(tmp_path, "ppo", seed, [10.0 + seed, 20.0, 30.0, 40.0 + seed])
+        make_run(tmp_path, "ppo_mpc", seed, [20.0, 45.0 + seed, 50.0, 50.0])
+    groups = {}
+    for r in load_runs(tmp_path):
+        groups.setdefault(r.method, []).append(r)
+    rows = {r["label"]: r for r in ppo_maximum_table(groups, "ppo", points=8)["rows"]}
+    assert rows["ppo"]["ratio_ci"] is None
+    ci = rows["ppo_mpc"]["ratio_ci"]
+    assert ci["low"] <= rows["ppo_mpc"]["ratio"] <= ci["high"] < 1
+
+
+def test_wall_seconds_add_each_segment_up_to_the_step_the_next_resumed_from(tmp_path):
+    run_dir = make_run(tmp_path, "ppo_mpc", 0, [1.0, 2.0, 3.0, 4.0], random_steps=0)
+    timing = run_dir / "logs" / "scalars" / "time"
+    timing.mkdir()
+    # segment 1 logs 1000 and 2000 at 10 steps/s; it resumed from 1000 (its row at 2000 was
+    # redone); segment 2 logs 2000..4000 at 20 steps/s since its start at 1000
+    (timing / "steps_per_s.csv").write_text("1000,10\n2000,20\n3000,20\n4000,20\n")
+    (timing / "model_fit_s.csv").write_text("1000,7.5\n3000,2.5\n")
+    resume = [{"event": "resume", "real_steps": 1000, "checkpoint": "checkpoint-1000"}]
+    (run_dir / "resume_log.json").write_text(json.dumps(resume))
+    (run,) = load_runs(tmp_path)
+    assert run.wall_seconds == pytest.approx(1000 / 10 + 3000 / 20)
+    assert run.refit_seconds == 10.0
+    (run_dir / "resume_log.json").unlink()
+    (run,) = load_runs(tmp_path)
+    assert run.wall_seconds == pytest.approx(4000 / 20)
+
+
+def test_refit_errors_pair_each_held_out_score_with_the_fit_it_scored(tmp_path):
+    from torchrl_mbmf.analysis.refits import refit_errors
+
+    for seed in range(2):
+        run_dir = make_run(tmp_path, "ppo_mpc", seed, [1.0, 2.0, 3.0], random_steps=100)
+        model = run_dir / "logs" / "scalars" / "model"
+        model.mkdir()
+        (model / "transitions.csv").write_text("100,100\n2100,2100\n")
+        (model / "heldout_x_mse_h5.csv").write_text(f"2100,{1.0 + seed}\n")
+        (model / "heldout_reward_mse_h5.csv").write_text(f"2100,{10.0 + seed}\n")
+        fits = [
+            {"transitions": t, "errors": [{"horizon": 5, "x_mse": t / 100, "reward_mse": 0.5}]}
+            for t in (100, 2100)
+        ]
+        (run_dir / "world_models").mkdir()
+        (run_dir / "world_models" / "open_loop_errors.json").write_text(json.dumps({"fits": fits}))
+    table = refit_errors(load_runs(tmp_path))
+    rows = {(r["transitions"], r["source"]): r for r in table["rows"]}
+    assert sorted(rows) == [(100, "policy"), (100, "random"), (2100, "random")]
+    assert rows[(100, "policy")]["x_mse"]["values"] == [1.0, 2.0]
+    assert rows[(100, "policy")]["reward_mse"]["iqm"] == 10.5
+    assert rows[(2100, "random")]["x_mse"]["values"] == [21.0, 21.0]
+    assert rows[(100, "random")]["thesis_x_mse"] == 2.359
+    # a held-out score logged where no refit happened is an error, not a silent row
+    (model / "heldout_x_mse_h5.csv").write_text("1500,1.0\n")
+    (model / "heldout_reward_mse_h5.csv").write_text("1500,1.0\n")
+    with pytest.raises(ValueError, match="step 1500 match no refit"):
+        refit_errors(load_runs(tmp_path))

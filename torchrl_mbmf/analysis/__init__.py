@@ -9,6 +9,7 @@ from torchrl_mbmf.analysis.gait import (
 )
 from torchrl_mbmf.analysis.horizon import horizon_predictions, horizon_table
 from torchrl_mbmf.analysis.plots import plot_curves, plot_gait_comparison, save_image
+from torchrl_mbmf.analysis.refits import refit_errors, run_refit_errors
 from torchrl_mbmf.analysis.report import write_report
 from torchrl_mbmf.analysis.runs import (
     Curve,
@@ -20,12 +21,14 @@ from torchrl_mbmf.analysis.runs import (
     interval_of,
     load_runs,
     ppo_maximum_table,
+    ratio_interval,
 )
 from torchrl_mbmf.analysis.stats import (
     Interval,
     bootstrap_ci,
     first_step_reaching,
     interpolate_curve,
+    interval_summary,
     iqm,
     rolling_window_stats,
 )
@@ -51,6 +54,7 @@ __all__ = [
     "horizon_table",
     "interpolate_curve",
     "interval_of",
+    "interval_summary",
     "iqm",
     "load_runs",
     "multistep_mse",
@@ -59,9 +63,12 @@ __all__ = [
     "plot_gait",
     "plot_gait_comparison",
     "ppo_maximum_table",
+    "ratio_interval",
     "record_gait",
+    "refit_errors",
     "render_states",
     "rolling_window_stats",
+    "run_refit_errors",
     "save_image",
     "write_report",
 ]

@@ -16,8 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from torchrl_mbmf.analysis.horizon import THESIS_HORIZON_MSE
 from torchrl_mbmf.analysis.plots import plot_curves, plot_gait_comparison, save_image
+from torchrl_mbmf.analysis.refits import refit_errors
 from torchrl_mbmf.analysis.runs import (
+    MODEL_BASED_METHODS,
     Run,
     aggregate_curve,
     compare_intervals,
@@ -26,7 +29,7 @@ from torchrl_mbmf.analysis.runs import (
     load_runs,
     ppo_maximum_table,
 )
-from torchrl_mbmf.analysis.stats import Interval, bootstrap_ci
+from torchrl_mbmf.analysis.stats import Interval, interval_summary
 from torchrl_mbmf.trainers.export import load_policy
 
 DEFAULT_HORIZON = 10
@@ -36,13 +39,6 @@ REWARDS = ("default", "head_pen", "shin_pen")
 #: Stable-Baselines3 reference runs (``recipes/sb3_reference.py``: method ``sb3_<algo>``) and
 #: their label on the figures of our PPO and SAC.
 SB3_REFERENCES = {"ppo": "sb3_ppo (Stable-Baselines3)", "sac": "sb3_sac (Stable-Baselines3)"}
-
-
-def _interval_dict(values: Sequence[float]) -> dict[str, Any] | None:
-    if not values:
-        return None
-    ci = bootstrap_ci(values)
-    return {"iqm": ci.estimate, "low": ci.low, "high": ci.high, "n": ci.n, "values": list(values)}
 
 
 def _as_interval(d: dict[str, Any]) -> Interval:
@@ -72,7 +68,7 @@ def _comparison(
         "partial_runs": {
             r.name: r.last_step for v in named.values() for r in v if r.last_step < r.total_steps
         },
-        "intervals": {k: _interval_dict(final_values(v, at_step=step)) for k, v in named.items()},
+        "intervals": {k: interval_summary(final_values(v, at_step=step)) for k, v in named.items()},
         "tables": {
             key: ppo_maximum_table(named, reference, budget=step, exclude_random=excl)
             for key, excl in (("all_steps", False), ("without_random", True))
@@ -102,7 +98,7 @@ def _planner_statistics(runs: Sequence[Run], step: int) -> dict[str, Any]:
             if kept.size:
                 means.append(float(kept.mean()))
         if means:
-            out[name.split("/")[-1]] = _interval_dict(means)
+            out[name.split("/")[-1]] = interval_summary(means)
     return out
 
 
@@ -192,14 +188,14 @@ def _horizon(roots: Sequence[str | Path], out_dir: Path) -> dict[str, Any]:
             row = by_h.setdefault(int(e["horizon"]), {"x_mse": [], "reward_mse": []})
             row["x_mse"].append(float(e["x_mse"]))
             row["reward_mse"].append(float(e["reward_mse"]))
-    thesis = {5: (2.359, 0.3856), 10: (2.489, 0.50635), 25: (3.0342, 0.6238)}
+    thesis = THESIS_HORIZON_MSE
     rows = []
     for h in sorted(by_h):
         rows.append(
             {
                 "horizon": h,
-                "x_mse": _interval_dict(by_h[h]["x_mse"]),
-                "reward_mse": _interval_dict(by_h[h]["reward_mse"]),
+                "x_mse": interval_summary(by_h[h]["x_mse"]),
+                "reward_mse": interval_summary(by_h[h]["reward_mse"]),
                 "thesis_x_mse": thesis.get(h, (None, None))[0],
                 "thesis_reward_mse": thesis.get(h, (None, None))[1],
             }
@@ -361,7 +357,8 @@ def analyze_experiments(
                 "random_steps": r.random_steps,
                 "last10_mean_return": (final_values([r]) or [None])[0],
                 "final_eval_return": (final_values([r], "eval/return") or [None])[0],
-                "seconds": (r.summary or {}).get("seconds"),
+                "seconds": r.wall_seconds,
+                "refit_seconds": r.refit_seconds,
                 "commit": r.commit,
                 "machine": r.machine,
             }
@@ -456,6 +453,8 @@ def analyze_experiments(
     analysis["exp4"] = cmp4
 
     analysis["horizon_mse"] = _horizon(world_model_roots, out_dir) if world_model_roots else None
+    # Tables 8 and 9 at every refit of the model-based runs (default reward, h = 10).
+    analysis["refits"] = {m: refit_errors(sel(m)) for m in MODEL_BASED_METHODS if sel(m)}
 
     # Beyond the thesis: every variant of PPO-MPC and SAC-MPC against the thesis' planner.
     ablation: dict[str, Any] = {}

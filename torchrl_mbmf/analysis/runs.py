@@ -124,6 +124,36 @@ class Run:
         return json.loads(path.read_text()) if path.exists() else {}
 
     @property
+    def wall_seconds(self) -> float | None:
+        """Wall time of the training loop over the work the run kept (``None`` if not logged).
+
+        A run resumed after an interruption ran in several processes (``resume_log.json``
+        gives the real step each resumed from). Each process logs ``time/steps_per_s``, its
+        real steps per second since it started; its last row up to the step the next one
+        resumed from gives its time. Work done after an interruption's last checkpoint, which
+        was thrown away and redone, is not counted. Falls back to ``summary.json``'s
+        ``seconds`` where the rate was not logged.
+        """
+        steps, rates = self.scalar("time/steps_per_s")
+        if not steps.size:
+            return None if self.summary is None else self.summary.get("seconds")
+        path = self.path / "resume_log.json"
+        events = json.loads(path.read_text()) if path.exists() else []
+        starts = [0] + [int(e["real_steps"]) for e in events if e.get("event") == "resume"]
+        total = 0.0
+        for begin, end in zip(starts, [*starts[1:], None], strict=True):
+            inside = steps > begin if end is None else (steps > begin) & (steps <= end)
+            rows = np.nonzero(inside)[0]
+            if rows.size:
+                total += (steps[rows[-1]] - begin) / rates[rows[-1]]
+        return float(total)
+
+    @property
+    def refit_seconds(self) -> float:
+        """Seconds spent fitting the world model, over every fit the run logged (0 model-free)."""
+        return float(self.scalar("time/model_fit_s")[1].sum())
+
+    @property
     def last_step(self) -> int:
         """The last real step the run logged (its progress if interrupted)."""
         if self.summary is not None:
@@ -430,6 +460,97 @@ def compare_intervals(a: Interval, b: Interval) -> str:
     return "overlapping"
 
 
+def _nan_iqm_columns(rows: np.ndarray) -> np.ndarray:
+    """IQM over axis ``-2`` ignoring NaN (``[..., seeds, grid] -> [..., grid]``; NaN if none)."""
+    ordered = np.sort(rows, axis=-2)  # NaN last
+    count = np.isfinite(ordered).sum(-2)
+    cut = np.floor(0.25 * count).astype(np.int64)  # scipy's trim_mean cut for each column
+    sums = np.concatenate(
+        [np.zeros_like(ordered[..., :1, :]), np.nan_to_num(ordered, nan=0.0).cumsum(-2)], -2
+    )
+    upper = np.take_along_axis(sums, (count - cut)[..., None, :], -2)[..., 0, :]
+    lower = np.take_along_axis(sums, cut[..., None, :], -2)[..., 0, :]
+    kept = count - 2 * cut
+    with np.errstate(all="ignore"):
+        return np.where(kept > 0, (upper - lower) / kept, np.nan)
+
+
+def _first_index_reaching(curves: np.ndarray, threshold: np.ndarray) -> np.ndarray:
+    """Per row of ``curves`` ``[B, grid]``, the first index reaching ``threshold`` ``[B]`` (-1)."""
+    hit = np.nan_to_num(curves, nan=-np.inf) >= threshold[:, None]
+    return np.where(hit.any(-1), hit.argmax(-1), -1)
+
+
+def ratio_interval(
+    reference: np.ndarray,
+    candidate: np.ndarray,
+    grid: np.ndarray,
+    *,
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> dict[str, float]:
+    r"""Percentile-bootstrap interval of the ratio of the steps to the reference's maximum.
+
+    Each resample draws the seeds of both configurations with replacement (independently),
+    takes their IQM curves, the reference curve's maximum as the threshold and the ratio of the
+    first grid steps at which the candidate's and the reference's curves reach it. A resample in
+    which the candidate never reaches the threshold counts as an infinite ratio, so an upper
+    bound of ``inf`` means that more than ``(1 - confidence) / 2`` of the resamples never got
+    there.
+
+    Args:
+        reference: ``[seeds, grid]`` per-seed curves of the reference (``Curve.per_seed``).
+        candidate: ``[seeds, grid]`` per-seed curves of the configuration compared with it.
+        grid: the real steps of the curves' columns.
+
+    Keyword Args:
+        confidence: confidence level. Defaults to ``0.95``.
+        n_resamples: bootstrap resamples. Defaults to ``2000``.
+        seed: seed of the resampling. Defaults to ``0``.
+
+    Returns:
+        ``{"low", "high", "reached"}``: the interval's bounds and the fraction of resamples in
+        which the candidate reached the threshold.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchrl_mbmf.analysis.runs import ratio_interval
+        >>> grid = np.array([100, 200, 300, 400])
+        >>> ref = np.array([[0.0, 1.0, 2.0, 4.0], [0.0, 1.0, 3.0, 4.0]])
+        >>> fast = ref[:, [1, 3, 3, 3]]  # reaches 4 at step 200
+        >>> ratio_interval(ref, fast, grid)
+        {'low': 0.5, 'high': 0.5, 'reached': 1.0}
+    """
+    reference, candidate = np.asarray(reference, float), np.asarray(candidate, float)
+    grid = np.asarray(grid)
+    for name, rows in (("reference", reference), ("candidate", candidate)):
+        if rows.ndim != 2 or rows.shape[1] != grid.size or rows.shape[0] < 1:
+            raise ValueError(
+                f"{name} curves have shape {rows.shape}; expected [seeds >= 1, {grid.size}]"
+            )
+    if not 0 < confidence < 1:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    rng = np.random.default_rng(seed)
+    ref_iqm = _nan_iqm_columns(
+        reference[rng.integers(0, len(reference), (n_resamples, len(reference)))]
+    )
+    cand_iqm = _nan_iqm_columns(
+        candidate[rng.integers(0, len(candidate), (n_resamples, len(candidate)))]
+    )
+    with np.errstate(all="ignore"):
+        threshold = np.nanmax(np.where(np.isfinite(ref_iqm), ref_iqm, -np.inf), -1)
+    ref_at = _first_index_reaching(ref_iqm, threshold)
+    cand_at = _first_index_reaching(cand_iqm, threshold)
+    ok = ref_at >= 0
+    ratios = np.where(cand_at >= 0, grid[cand_at] / grid[np.maximum(ref_at, 0)], np.inf)[ok]
+    if not ratios.size:
+        raise ValueError("the reference curves hold no finite value")
+    tail = (1 - confidence) / 2 * 100
+    low, high = np.percentile(ratios, [tail, 100 - tail], method="lower")
+    return {"low": float(low), "high": float(high), "reached": float(np.isfinite(ratios).mean())}
+
+
 def ppo_maximum_table(
     groups: Mapping[str, Sequence[Run]],
     reference: str,
@@ -457,8 +578,10 @@ def ppo_maximum_table(
         points: grid resolution. Defaults to ``400``.
 
     Returns:
-        ``{"threshold", "budget", "exclude_random", "rows": [{label, step, ratio, seeds_reached,
-        per_seed_steps, seeds}]}``; ``step`` and ``ratio`` are ``None`` where never reached.
+        ``{"threshold", "budget", "exclude_random", "rows": [{label, step, ratio, ratio_ci,
+        seeds_reached, per_seed_steps, seeds}]}``; ``step`` and ``ratio`` are ``None`` where
+        never reached; ``ratio_ci`` is :func:`ratio_interval` over the seeds (``None`` for the
+        reference itself).
 
     Raises:
         KeyError: ``reference`` is not in ``groups``.
@@ -505,6 +628,9 @@ def ppo_maximum_table(
                 "label": label,
                 "step": step,
                 "ratio": None if step is None or not ref_step else step / ref_step,
+                "ratio_ci": None
+                if label == reference
+                else ratio_interval(curves[reference].per_seed, curve.per_seed, grid),
                 "best": float(np.nanmax(curve.iqm)) if np.isfinite(curve.iqm).any() else None,
                 "seeds_reached": sum(s is not None for s in per_seed),
                 "per_seed_steps": per_seed,
@@ -558,4 +684,5 @@ __all__ = [
     "interval_of",
     "load_runs",
     "ppo_maximum_table",
+    "ratio_interval",
 ]

@@ -122,6 +122,26 @@ def bootstrap_ci(
     return Interval(estimate, float(ci.low), float(ci.high), confidence, int(arr.size))
 
 
+def interval_summary(values: Sequence[float]) -> dict[str, object] | None:
+    """:func:`bootstrap_ci` of the IQM as a JSON-ready dict, with the values themselves.
+
+    Args:
+        values: one number per seed.
+
+    Returns:
+        ``{"iqm", "low", "high", "n", "values"}``, or ``None`` for no values.
+
+    Examples:
+        >>> from torchrl_mbmf.analysis.stats import interval_summary
+        >>> interval_summary([2.0, 2.0])
+        {'iqm': 2.0, 'low': 2.0, 'high': 2.0, 'n': 2, 'values': [2.0, 2.0]}
+    """
+    if not len(values):
+        return None
+    ci = bootstrap_ci(values)
+    return {"iqm": ci.estimate, "low": ci.low, "high": ci.high, "n": ci.n, "values": list(values)}
+
+
 def rolling_window_stats(
     returns: Sequence[float] | np.ndarray, window: int = 10
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
