@@ -370,3 +370,28 @@ def test_refit_errors_pair_each_held_out_score_with_the_fit_it_scored(tmp_path):
     (model / "heldout_reward_mse_h5.csv").write_text("1500,1.0\n")
     with pytest.raises(ValueError, match="step 1500 match no refit"):
         refit_errors(load_runs(tmp_path))
+
+
+def test_fine_tuning_is_compared_after_the_switch_and_enters_q1(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        make_run(runs, "ppo", seed, [10.0 * i + seed for i in range(1, 9)])
+        # plans for 2 updates of 1000 steps after 1000 random steps, then fine-tunes to 8000
+        path = make_run(
+            runs, "ppo_mpc", seed, [15.0 * i + seed for i in range(1, 8)], random_steps=1000
+        )
+        config = yaml.safe_load((path / "config.yaml").read_text())
+        config["planning_updates"] = 2
+        (path / "config.yaml").write_text(yaml.safe_dump(config))
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
+    e2 = analysis["exp2"]
+    assert e2["common_step"] == 3000  # the planning phase ends at the switch
+    ft = e2["finetune"]
+    assert ft["complete"] and ft["common_step"] == 8000
+    rows = {r["label"]: r for r in ft["tables"]["all_steps"]["rows"]}
+    # PPO's best is 82 (at 8000); fine-tuned PPO-MPC reaches it at 7000 (1000 + 6 x 1000)
+    assert ft["tables"]["all_steps"]["threshold"] == pytest.approx(81.0, abs=1.0)
+    assert rows["ppo_mpc"]["step"] == 7000
+    assert (tmp_path / "out" / e2["finetune_figure"]).exists()
+    q1 = analysis["verdicts"]["Q1"]
+    assert "after fine-tuning" in q1["why"] and q1["finetune_verdict"] == "supported"

@@ -275,7 +275,7 @@ def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, A
     else:
         text += (
             f"{candidate} reached {best} "
-            f"at {row['step']} real steps, ratio {row['ratio']:.2f} "
+            f"at {row['step']} real steps, ratio {row['ratio']:.2f}{_ratio_text(row)} "
             f"({row['seeds_reached']}/{len(row['seeds'])} seeds on their own)"
         )
     if rel == "higher" and row["ratio"] is not None and row["ratio"] < 1:
@@ -285,6 +285,13 @@ def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, A
     else:
         verdict = "inconclusive"
     return {"verdict": verdict, "why": text}
+
+
+def _ratio_text(row: dict[str, Any]) -> str:
+    ci = row.get("ratio_ci")
+    if not ci:
+        return ""
+    return f" [{ci['low']:.2f}, {ci['high']:.2f}] (95% bootstrap over seeds)"
 
 
 def analyze_experiments(
@@ -407,6 +414,9 @@ def analyze_experiments(
             )
         finetuned = [r for r in named["ppo_mpc"] if r.switch_step and r.last_step > r.switch_step]
         if finetuned:
+            ft = _comparison({"ppo": named["ppo"], "ppo_mpc": finetuned}, "ppo")
+            cmp["finetune"] = ft
+            # with the PPO-maximum line of figures 11b, 12b, 13b
             cmp["finetune_figure"] = _curves_figure(
                 with_reference(
                     {"ppo": named["ppo"], "ppo_mpc (fine-tuned after the switch)": finetuned},
@@ -416,8 +426,9 @@ def analyze_experiments(
                 out_dir / f"exp2_{reward}_finetune.png",
                 title=f"PPO vs PPO-MPC with warm-start fine-tuning, {reward} reward",
                 vlines={"switch to pure PPO": float(finetuned[0].switch_step)},
+                hline=ft["tables"]["all_steps"]["threshold"] if ft.get("complete") else None,
+                hline_label="PPO maximum",
             )
-            cmp["finetune"] = _comparison({"ppo": named["ppo"], "ppo_mpc": finetuned}, "ppo")
         else:
             cmp["finetune"] = {"complete": False, "why": "no PPO-MPC run went past its switch step"}
         exp3[reward] = cmp
@@ -516,8 +527,14 @@ def analyze_experiments(
             k: analysis.get("gait", {}).get(k) for k in ("steadiest", "least_power", "furthest")
         },
     }
+    q1 = _verdict(analysis["exp2"], "ppo_mpc", "ppo")
+    finetune = analysis["exp2"].get("finetune", {})
+    if finetune.get("complete"):
+        after = _verdict(finetune, "ppo_mpc", "ppo")
+        q1 = {**q1, "why": f"planning phase: {q1['why']}; after fine-tuning: {after['why']}"}
+        q1["finetune_verdict"] = after["verdict"]
     analysis["verdicts"] = {
-        "Q1": _verdict(analysis["exp2"], "ppo_mpc", "ppo"),
+        "Q1": q1,
         "Q2": q2,
         "Q3": q3,
         "Q4": _verdict(analysis["exp4"], "sac_mpc", "sac"),
