@@ -50,6 +50,22 @@ TINY_HALF_CHEETAH = [
 ]
 
 
+def build_for_checks(cfg, run_dir) -> None:
+    """What a run checks before any work: the config, then every component built from it.
+
+    ``recipes/train.py`` builds a :class:`~torchrl_mbmf.trainers.Trainer`; its constructor
+    validates the config (the trainer's settings, key names, checks across keys) and builds
+    the components of the config groups, whose constructors check their arguments.
+
+    Args:
+        cfg: the composed config.
+        run_dir: a folder for the run (written only if everything is valid).
+    """
+    from torchrl_mbmf.trainers import Trainer
+
+    Trainer(cfg, run_dir)
+
+
 def make_test_sac_loss(
     batch_size: int = 8,
     obs_dim: int = 3,

@@ -97,7 +97,7 @@ def test_cem_and_mppi_refit(real, policy):
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"refinement": "icem"}, "refinement must be one of"),
+        ({"refinement": "icem"}, "refinement=.icem. is not supported"),
         ({"refinement": "cem", "iterations": 0}, "iterations must be"),
         ({"refinement": "cem", "num_elites": 20}, "num_elites must be"),
         ({"refinement": "mppi", "policy_fraction": 1.0}, "policy_fraction must be"),

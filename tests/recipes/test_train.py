@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
-from rl_helpers import TINY_HALF_CHEETAH
+from rl_helpers import TINY_HALF_CHEETAH, build_for_checks
 from rl_helpers import TINY_TRAIN as TINY
 
 from torchrl_mbmf.trainers import ConfigError, validate_train_config
@@ -119,7 +119,7 @@ def test_half_cheetah_ppo_mpc_tiny(tmp_path):
         (["total_steps=100000", "planning_updates=200"], "beyond total_steps=100000"),
         (["env.num_envs=3"], "multiple of env.num_envs=3"),
         (["logger.backend=foo"], "logger.backend='foo'"),
-        (["sac.update=jit"], "sac.update='jit' is not supported; allowed"),
+        (["method=sac", "sac.update=jit"], "sac.update='jit' is not supported; allowed"),
         (["ppo.update=jit"], "ppo.update='jit' is not supported; allowed"),
         (["collector=multi"], "collector='multi' is not supported; allowed"),
         (["device=gpu"], "device='gpu' is not supported; allowed"),
@@ -144,10 +144,10 @@ def test_half_cheetah_ppo_mpc_tiny(tmp_path):
         ),
     ],
 )
-def test_bad_config_fails_before_work(overrides, message):
+def test_bad_config_fails_before_work(overrides, message, tmp_path):
     cfg = _compose(*overrides)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
-        validate_train_config(cfg)
+        build_for_checks(cfg, tmp_path / "run")
 
 
 def test_variants_get_their_own_run_folders():

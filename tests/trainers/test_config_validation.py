@@ -1,4 +1,9 @@
-"""Every train setting is type- and range-checked, and unknown keys are refused, before any work."""
+"""Every train setting is type- and range-checked, and unknown keys are refused, before any work.
+
+The trainer's own settings and the checks across keys are the config's
+(``validate_train_config``); a component group's values are checked by its constructor when the
+run builds it (``build_for_checks``: what ``recipes/train.py`` does before collecting).
+"""
 
 from __future__ import annotations
 
@@ -7,9 +12,12 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from rl_helpers import build_for_checks
 
 from torchrl_mbmf.trainers import ConfigError, validate_train_config
-from torchrl_mbmf.trainers.config import TRAIN_SETTINGS, flatten_config, resume_changes
+from torchrl_mbmf.trainers.components import DEFAULT_TARGETS
+from torchrl_mbmf.trainers.config import flatten_config, resume_changes, train_setting_keys
 
 CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
 
@@ -23,24 +31,33 @@ def _compose(*overrides: str):
     ("overrides", "message"),
     [
         (["ppo.gamma=5"], "ppo.gamma must be a number in (0, 1], got 5"),
-        (["sac.gamma=0"], "sac.gamma must be a number in (0, 1], got 0"),
+        (["method=sac", "sac.gamma=0"], "sac.gamma must be a number in (0, 1], got 0"),
         (["eval_episodes=-1"], "eval_episodes must be an integer >= 0, got -1"),
-        (["sac.utd_ratio=-1"], "sac.utd_ratio must be a number > 0, got -1"),
-        (["sac.init_random_frames=-5"], "sac.init_random_frames must be an integer >= 0, got -5"),
+        (["method=sac", "sac.utd_ratio=-1"], "sac.utd_ratio must be a number > 0, got -1"),
+        (
+            ["method=sac", "sac.init_random_frames=-5"],
+            "sac.init_random_frames must be an integer >= 0, got -5",
+        ),
         (["seed=-1"], "seed must be an integer in [0, 4294967295], got -1"),
         (["ppo.lr=abc"], "ppo.lr must be a number > 0, got 'abc'"),
         (["ppo.lr=nan"], "ppo.lr must be a number > 0, got nan"),
         (["ppo.clip_epsilon=inf"], "ppo.clip_epsilon must be a number in (0, 1], got inf"),
         (["ppo.hidden_sizes=[0]"], "ppo.hidden_sizes must be a list of integers >= 1, got [0]"),
-        (["world_model.hidden_sizes=[64,-1]"], "world_model.hidden_sizes must be a list"),
-        (["sac.hidden_sizes=64"], "sac.hidden_sizes must be a list of integers >= 1, got 64"),
+        (
+            ["world_model.hidden_sizes=[64,-1]"],
+            "world_model.hidden_sizes must be a sequence of integers >= 1, got [64, -1]",
+        ),
+        (
+            ["method=sac", "sac.hidden_sizes=64"],
+            "sac.hidden_sizes must be a list of integers >= 1, got 64",
+        ),
         (["planner.horizon=2.5"], "planner.horizon must be an integer >= 1, got 2.5"),
         (["ppo.epochs=true"], "ppo.epochs must be an integer >= 1, got True"),
         (["progress=yes"], "progress must be true or false, got 'yes'"),
         (["threads=0"], "threads must be null or an integer >= 1, got 0"),
         (["ppo.distribution=beta"], "ppo.distribution='beta' is not supported; allowed"),
         (["ppo.lmbda=1.5"], "ppo.lmbda must be a number in [0, 1], got 1.5"),
-        (["sac.tau=0"], "sac.tau must be a number in (0, 1], got 0"),
+        (["method=sac", "sac.tau=0"], "sac.tau must be a number in (0, 1], got 0"),
         (["world_model.val_fraction=1"], "world_model.val_fraction must be a number in (0, 1)"),
         (["world_model.lr=-1e-4"], "world_model.lr must be a number > 0"),
         (["planning_updates=-1"], "planning_updates must be an integer >= 0, got -1"),
@@ -58,11 +75,12 @@ def _compose(*overrides: str):
         ),
     ],
 )
-def test_bad_setting_names_key_and_value(overrides, message):
+def test_bad_setting_names_key_and_value(overrides, message, tmp_path):
     cfg = _compose(*overrides)
     escaped = message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
     with pytest.raises(ConfigError, match=escaped.replace("]", r"\]")):
-        validate_train_config(cfg)
+        build_for_checks(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()  # nothing written for a refused config
 
 
 def test_unknown_key_suggests_the_close_setting():
@@ -77,8 +95,36 @@ def test_every_composed_setting_has_a_check():
     for group in groups:
         for path in sorted((root / group).glob("*.yaml")):
             validate_train_config(_compose(f"{group}={path.stem}"))
-    keys = set(TRAIN_SETTINGS)
-    assert {"ppo.gamma", "sac.utd_ratio", "seed", "eval_episodes"} <= keys
+    keys = set(train_setting_keys(_compose()))
+    assert {"ppo.gamma", "sac.utd_ratio", "seed", "eval_episodes", "planner._target_"} <= keys
+
+
+def test_groups_name_their_builders():
+    """Each component group's ``_target_`` is the builder a config without one means."""
+    cfg = _compose()
+    assert {group: cfg[group]["_target_"] for group in DEFAULT_TARGETS} == DEFAULT_TARGETS
+
+
+def test_a_run_folder_config_from_before_targets_validates_and_resumes(tmp_path):
+    """``data/config_before_targets.yaml`` is a run folder's ``config.yaml`` written before the
+    groups named their builders (the command of the campaign's runs). It validates, builds, and
+    a resume with today's config of the same command changes nothing."""
+    from torchrl_mbmf.trainers.resume import fingerprint
+
+    old = OmegaConf.load(Path(__file__).parent / "data" / "config_before_targets.yaml")
+    assert "_target_" not in old.planner
+    command = ["method=sac_mpc", "planner.horizon=10", "reward=head_pen", "seed=2"]
+    now = _compose(*command, "budget=thesis", "threads=1", "progress=false")
+    validate_train_config(old)
+    assert resume_changes(flatten_config(old), flatten_config(now)) == ({}, {})
+    assert fingerprint(old) == fingerprint(now)
+    old.world_model.hidden_sizes = [8]  # the default builders, from a config without targets
+    old.sac.hidden_sizes = [8]
+    build_for_checks(old, tmp_path / "run")
+    assert (tmp_path / "run" / "config.yaml").exists()
+    old.planner._target_ = "some.other.planner"
+    refused, _ = resume_changes(flatten_config(old), flatten_config(now))
+    assert "planner._target_" in refused
 
 
 def test_valid_edge_values_pass():

@@ -9,7 +9,7 @@ value. No setting of one algorithm is read by the other.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -22,10 +22,24 @@ from torchrl.objectives.value import GAE
 
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.planners import MinQValue
+from torchrl_mbmf.trainers.components import (
+    Setting,
+    check_arguments,
+    choice,
+    instantiate_group,
+    settings,
+)
 from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.trainers.sac import FusedSACUpdate, ReplaySampler, sac_update_step
 
-__all__ = ["PPOAgent", "SACAgent", "make_agent"]
+__all__ = ["DISTRIBUTIONS", "PPO_UPDATES", "SAC_UPDATES", "PPOAgent", "SACAgent", "make_agent"]
+
+#: PPO policy distributions (``ppo.distribution``).
+DISTRIBUTIONS: tuple[str, ...] = ("tanh_normal", "normal")
+#: PPO update paths (``ppo.update``).
+PPO_UPDATES: tuple[str, ...] = ("fused", "fused_autograd", "stock")
+#: SAC update paths (``sac.update``).
+SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
 
 
 class PPOAgent:
@@ -33,64 +47,112 @@ class PPOAgent:
 
     One :meth:`update` per collected batch: GAE once, ``epochs`` passes of ``minibatch_size``
     minibatches (through :class:`~torchrl_mbmf.trainers.ppo.FusedPPOUpdate` unless
-    ``update=stock``).
+    ``update=stock``). The builder of the ``ppo`` config group (its ``_target_``): the
+    keyword arguments are the group's keys (``configs/algo/ppo.yaml``), checked here
+    (:data:`ARGUMENTS`) before anything is built.
 
     Args:
         env: the training env (sizes the networks).
-        cfg: the ``ppo`` config group (``configs/algo/ppo.yaml``).
         device: device of the networks and updates.
+
+    Keyword Args:
+        frames_per_batch: real steps per update (the collector's batch).
+        minibatch_size: minibatch size of the PPO epochs.
+        epochs: passes over each batch.
+        clip_epsilon: PPO's clip range.
+        entropy_coeff: weight of the entropy bonus.
+        critic_coeff: weight of the value loss.
+        gamma: discount.
+        lmbda: GAE's lambda.
+        lr: Adam's learning rate.
+        max_grad_norm: gradient-norm clip.
+        hidden_sizes: hidden layers of the actor and critic.
+        distribution: ``"normal"`` or ``"tanh_normal"``.
+        init_log_std: initial log-std of the policy.
+        update: ``"fused"``, ``"fused_autograd"`` or ``"stock"``. Defaults to ``"stock"``.
 
     Examples:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.agents import PPOAgent
-        >>> cfg = OmegaConf.load("configs/algo/ppo.yaml")
-        >>> agent = PPOAgent(make_env("Pendulum-v1", seed=0), cfg, torch.device("cpu"))
+        >>> from torchrl_mbmf.trainers.agents import make_agent
+        >>> cfg = OmegaConf.create({"ppo": OmegaConf.load("configs/algo/ppo.yaml")})
+        >>> agent = make_agent("ppo", make_env("Pendulum-v1", seed=0), cfg, torch.device("cpu"))
         >>> agent.log_std()
         0.0
     """
 
     #: Whether each update's count is logged as ``train/updates``.
     logs_update_count = True
+    #: The range of each argument, checked by the constructor.
+    ARGUMENTS: dict[str, Setting] = settings(
+        positive_int=("frames_per_batch", "minibatch_size", "epochs"),
+        unit=("clip_epsilon", "gamma"),
+        non_negative=("entropy_coeff", "critic_coeff"),
+        probability=("lmbda",),
+        positive=("lr", "max_grad_norm"),
+        sizes=("hidden_sizes",),
+        finite=("init_log_std",),
+    ) | {"distribution": choice(*DISTRIBUTIONS), "update": choice(*PPO_UPDATES)}
 
-    def __init__(self, env: EnvBase, cfg: Mapping[str, Any], device: torch.device) -> None:
-        self.cfg = cfg
+    def __init__(
+        self,
+        env: EnvBase,
+        device: torch.device,
+        *,
+        frames_per_batch: int,
+        minibatch_size: int,
+        epochs: int,
+        clip_epsilon: float,
+        entropy_coeff: float,
+        critic_coeff: float,
+        gamma: float,
+        lmbda: float,
+        lr: float,
+        max_grad_norm: float,
+        hidden_sizes: Sequence[int],
+        distribution: str,
+        init_log_std: float,
+        update: str = "stock",
+    ) -> None:
+        check_arguments(self.ARGUMENTS, locals())
+        self.frames_per_batch = frames_per_batch
+        self.epochs, self.minibatch_size = int(epochs), int(minibatch_size)
+        self.max_grad_norm = float(max_grad_norm)
         self.device = device
         self.actor, self.critic = make_ppo_actor_critic(
             env,
-            hidden_sizes=tuple(cfg.hidden_sizes),
-            distribution=cfg.distribution,
-            init_log_std=float(cfg.init_log_std),
+            hidden_sizes=tuple(hidden_sizes),
+            distribution=distribution,
+            init_log_std=float(init_log_std),
         )
         self.actor.to(device)
         self.critic.to(device)
         self.loss = ClipPPOLoss(
             self.actor,
             self.critic,
-            clip_epsilon=float(cfg.clip_epsilon),
-            entropy_coeff=float(cfg.entropy_coeff),
-            critic_coeff=float(cfg.critic_coeff),
+            clip_epsilon=float(clip_epsilon),
+            entropy_coeff=float(entropy_coeff),
+            critic_coeff=float(critic_coeff),
             normalize_advantage=True,
         )
         self.gae = GAE(
-            gamma=float(cfg.gamma),
-            lmbda=float(cfg.lmbda),
+            gamma=float(gamma),
+            lmbda=float(lmbda),
             value_network=self.critic,
             average_gae=False,
         )
-        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.lr))
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(lr))
         self.replay = None
         self.fused = None
-        mode = cfg.get("update", "stock")
-        if mode != "stock":
+        if update != "stock":
             self.fused = FusedPPOUpdate(
                 self.loss,
                 self.gae,
                 self.optim,
-                epochs=int(cfg.epochs),
-                minibatch_size=int(cfg.minibatch_size),
-                max_grad_norm=float(cfg.max_grad_norm),
-                gradients="manual" if mode == "fused" else "autograd",
+                epochs=self.epochs,
+                minibatch_size=self.minibatch_size,
+                max_grad_norm=self.max_grad_norm,
+                gradients="manual" if update == "fused" else "autograd",
             )
         self._scale = next(
             m for m in self.actor.modules() if isinstance(m, AddStateIndependentNormalScale)
@@ -110,7 +172,6 @@ class PPOAgent:
             batch: a collector batch ``[*B, T]`` with ``action_log_prob``.
             real_steps: real env steps so far (unused: every PPO batch takes an update).
         """
-        c = self.cfg
         if self.device.type != "cpu":
             batch = batch.to(self.device)
         if self.fused is not None:
@@ -121,9 +182,9 @@ class PPOAgent:
                 self.gae,
                 self.optim,
                 batch,
-                epochs=int(c.epochs),
-                minibatch_size=int(c.minibatch_size),
-                max_grad_norm=float(c.max_grad_norm),
+                epochs=self.epochs,
+                minibatch_size=self.minibatch_size,
+                max_grad_norm=self.max_grad_norm,
             )
         return {f"loss/{k}": v for k, v in stats.items()}
 
@@ -141,19 +202,36 @@ class SACAgent:
 
     :meth:`update` stores the batch and takes ``utd_ratio`` updates per collected frame past
     ``init_random_frames`` (as Stable-Baselines3's ``learning_starts``), through
-    :class:`~torchrl_mbmf.trainers.sac.FusedSACUpdate` unless ``update=stock``.
+    :class:`~torchrl_mbmf.trainers.sac.FusedSACUpdate` unless ``update=stock``. The builder of
+    the ``sac`` config group (its ``_target_``): the keyword arguments are the group's keys
+    (``configs/algo/sac.yaml``), checked here (:data:`ARGUMENTS`) before anything is built.
 
     Args:
         env: the training env (sizes the networks and the action bounds).
-        cfg: the ``sac`` config group (``configs/algo/sac.yaml``).
         device: device of the networks, replay buffer and updates.
+
+    Keyword Args:
+        frames_per_batch: real steps per collected batch.
+        utd_ratio: updates per collected frame.
+        batch_size: replay minibatch size.
+        init_random_frames: frames before the first update.
+        replay_size: replay buffer capacity.
+        hidden_sizes: hidden layers of the actor and the Q networks.
+        lr: Adam's learning rate.
+        gamma: discount.
+        tau: soft target update rate.
+        alpha_init: initial entropy coefficient.
+        refit_every_steps: ``sac_mpc``'s world-model refit period in real steps (read by the
+            :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule`).
+        update: ``"fused"`` or ``"stock"``. Defaults to ``"stock"``.
 
     Examples:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.agents import SACAgent
+        >>> from torchrl_mbmf.trainers.agents import make_agent
         >>> env = make_env("Pendulum-v1", seed=0)
-        >>> agent = SACAgent(env, OmegaConf.load("configs/algo/sac.yaml"), torch.device("cpu"))
+        >>> cfg = OmegaConf.create({"sac": OmegaConf.load("configs/algo/sac.yaml")})
+        >>> agent = make_agent("sac", env, cfg, torch.device("cpu"))
         >>> batch = env.rollout(100, agent.actor)
         >>> agent.update(batch, real_steps=100) is None  # within sac.init_random_frames
         True
@@ -162,29 +240,56 @@ class SACAgent:
     """
 
     logs_update_count = False
+    #: The range of each argument, checked by the constructor.
+    ARGUMENTS: dict[str, Setting] = settings(
+        positive_int=("frames_per_batch", "batch_size", "replay_size", "refit_every_steps"),
+        count=("init_random_frames",),
+        positive=("utd_ratio", "lr", "alpha_init"),
+        unit=("gamma", "tau"),
+        sizes=("hidden_sizes",),
+    ) | {"update": choice(*SAC_UPDATES)}
 
-    def __init__(self, env: EnvBase, cfg: Mapping[str, Any], device: torch.device) -> None:
-        self.cfg = cfg
+    def __init__(
+        self,
+        env: EnvBase,
+        device: torch.device,
+        *,
+        frames_per_batch: int,
+        utd_ratio: float,
+        batch_size: int,
+        init_random_frames: int,
+        replay_size: int,
+        hidden_sizes: Sequence[int],
+        lr: float,
+        gamma: float,
+        tau: float,
+        alpha_init: float,
+        refit_every_steps: int,
+        update: str = "stock",
+    ) -> None:
+        check_arguments(self.ARGUMENTS, locals())
+        self.frames_per_batch, self.refit_every_steps = frames_per_batch, refit_every_steps
+        self.init_random_frames, self.utd_ratio = int(init_random_frames), float(utd_ratio)
         self.device = device
-        self.actor, self.critic = make_sac_actor_critic(env, hidden_sizes=tuple(cfg.hidden_sizes))
+        self.actor, self.critic = make_sac_actor_critic(env, hidden_sizes=tuple(hidden_sizes))
         self.actor.to(device)
         self.critic.to(device)
         self.loss = SACLoss(
             self.actor,
             self.critic,
             num_qvalue_nets=2,
-            alpha_init=float(cfg.alpha_init),
+            alpha_init=float(alpha_init),
             action_spec=env.full_action_spec_unbatched[env.action_key],
         )
         self.loss.to(device)
-        self.loss.make_value_estimator(gamma=float(cfg.gamma))
-        self.target_updater = SoftUpdate(self.loss, tau=float(cfg.tau))
-        fused = cfg.get("update", "stock") == "fused"
+        self.loss.make_value_estimator(gamma=float(gamma))
+        self.target_updater = SoftUpdate(self.loss, tau=float(tau))
+        fused = update == "fused"
         # the fused path also uses torch's fused Adam (same update up to float rounding)
-        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(cfg.lr), fused=fused)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(lr), fused=fused)
         self.replay = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(int(cfg.replay_size), device=device),
-            batch_size=int(cfg.batch_size),
+            storage=LazyTensorStorage(int(replay_size), device=device),
+            batch_size=int(batch_size),
         )
         self.sampler = None
         if fused:
@@ -214,8 +319,8 @@ class SACAgent:
             batch takes no update.
         """
         self.observe(batch)
-        past = real_steps - max(int(self.cfg.init_random_frames), real_steps - batch.numel())
-        updates = round(past * float(self.cfg.utd_ratio))
+        past = real_steps - max(self.init_random_frames, real_steps - batch.numel())
+        updates = round(past * self.utd_ratio)
         if updates <= 0:
             return None
         stats: dict[str, list[torch.Tensor]] = {}
@@ -240,11 +345,17 @@ class SACAgent:
 def make_agent(method_family: str, env: EnvBase, cfg: Any, device: torch.device) -> Any:
     """The agent of ``method_family`` (``"ppo"`` or ``"sac"``) built from ``cfg[method_family]``.
 
+    The group is built by :func:`~torchrl_mbmf.trainers.components.instantiate_group`: its
+    ``_target_`` (:class:`PPOAgent` or :class:`SACAgent` without one) with the group's keys.
+
     Args:
         method_family: ``"ppo"`` or ``"sac"``.
         env: the training env.
         cfg: the whole training config (only its ``method_family`` group is read).
         device: device of the networks and updates.
+
+    Raises:
+        ConfigError: naming the key of an argument the agent refuses (``ppo.gamma``).
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -254,7 +365,6 @@ def make_agent(method_family: str, env: EnvBase, cfg: Any, device: torch.device)
         >>> type(make_agent("sac", make_env("Pendulum-v1"), cfg, torch.device("cpu"))).__name__
         'SACAgent'
     """
-    agents = {"ppo": PPOAgent, "sac": SACAgent}
-    if method_family not in agents:
-        raise ValueError(f"method_family={method_family!r}; expected one of {sorted(agents)}")
-    return agents[method_family](env, cfg[method_family], device)
+    if method_family not in ("ppo", "sac"):
+        raise ValueError(f"method_family={method_family!r}; expected one of ['ppo', 'sac']")
+    return instantiate_group(cfg, method_family, env=env, device=device)

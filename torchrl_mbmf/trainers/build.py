@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import random
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -11,9 +12,11 @@ import torch
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.record.loggers import Logger, get_logger
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.envs.factory import make_env
+from torchrl_mbmf.trainers.components import choice
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.hooks import (
     Checkpointing,
@@ -26,7 +29,18 @@ from torchrl_mbmf.trainers.hooks import (
     StepTiming,
 )
 
-__all__ = ["evaluate_policy", "make_collector", "make_hooks", "make_train_env", "seed_everything"]
+__all__ = [
+    "LOGGERS",
+    "evaluate_policy",
+    "make_collector",
+    "make_hooks",
+    "make_logger",
+    "make_train_env",
+    "seed_everything",
+]
+
+#: Logger backends of the ``logger`` group (``""``: no logger).
+LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
 
 
 def seed_everything(seed: int) -> None:
@@ -67,6 +81,26 @@ def make_train_env(cfg: Any, seed: int, num_envs: int | None = None) -> EnvBase:
         seed=seed,
         device=cfg.env.device,
     )
+
+
+def make_logger(run_dir: str | Path, *, backend: str) -> Logger | None:
+    """The run's logger: the ``logger`` config group's builder (its ``_target_``).
+
+    Args:
+        run_dir: the run folder (the logs go to ``run_dir/logs``).
+
+    Keyword Args:
+        backend: a :data:`LOGGERS` entry, passed to :func:`torchrl.record.loggers.get_logger`
+            (``""``: no logger).
+
+    Examples:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     type(make_logger(d, backend="csv")).__name__
+        'CSVLogger'
+    """
+    choice(*LOGGERS).check("backend", backend)
+    return get_logger(backend, logger_name=str(run_dir), experiment_name="logs")
 
 
 def make_collector(

@@ -1,19 +1,43 @@
-"""Validation of the training config: fail before any work starts, naming the key."""
+"""Validation of the training config: the trainer's own settings and the checks across keys.
+
+The component groups (``ppo``, ``sac``, ``world_model``, ``planner``, ``logger``) are built
+from their ``_target_`` (:mod:`~torchrl_mbmf.trainers.components`) and their constructors
+check each argument when the run builds them, before any work. Here: the trainer's own
+settings (:data:`TRAIN_SETTINGS`: the method, budgets, seed, env, reward, checkpoints), the
+key names of every group (unknown keys are refused), and the checks that span several keys.
+"""
 
 from __future__ import annotations
 
 import difflib
 import inspect
-import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
-from torchrl_mbmf.modules.planners.policy_guided import REFINEMENTS
+from torchrl_mbmf.trainers.components import (
+    DEFAULT_TARGETS,
+    ConfigError,
+    Setting,
+    group_keys,
+    group_target,
+)
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
+
+__all__ = [
+    "METHODS",
+    "MODEL_BASED",
+    "PPO_METHODS",
+    "RESUME_SAFE_SETTINGS",
+    "TRAIN_SETTINGS",
+    "ConfigError",
+    "flatten_config",
+    "resume_changes",
+    "train_setting_keys",
+    "validate_train_config",
+]
 
 #: Methods of ``recipes/train.py``.
 METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc", "sac", "sac_mpc")
@@ -21,137 +45,26 @@ METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc", "sac", "sac_mpc")
 MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc")
 #: Methods trained with PPO.
 PPO_METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc")
-SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
+#: Methods whose planner is guided by the policy.
+GUIDED: tuple[str, ...] = ("ppo_mpc", "sac_mpc")
 COLLECTORS: tuple[str, ...] = ("lean", "stock")
-PPO_UPDATES: tuple[str, ...] = ("fused", "fused_autograd", "stock")
-LOGGERS: tuple[str, ...] = ("csv", "tensorboard", "wandb", "mlflow", "")
-DISTRIBUTIONS: tuple[str, ...] = ("tanh_normal", "normal")
-EARLY_STOPPING: tuple[str, ...] = ("objective", "one_step")
 #: Largest seed NumPy accepts (``np.random.seed``).
 MAX_SEED = 2**32 - 1
-
-
-class ConfigError(ValueError):
-    """A training config value is invalid; the message names the key and the allowed values."""
-
-
-@dataclass(frozen=True)
-class Setting:
-    """The type and range of one train setting.
-
-    Args:
-        kind: ``"int"``, ``"float"``, ``"bool"``, ``"str"``, ``"choice"`` or ``"sizes"`` (a list
-            of integers >= 1, possibly empty).
-        low: smallest allowed value, or ``None``. Defaults to ``None``.
-        high: largest allowed value, or ``None``. Defaults to ``None``.
-        low_open: ``low`` itself is excluded. Defaults to ``False``.
-        high_open: ``high`` itself is excluded. Defaults to ``False``.
-        choices: the allowed values of a ``"choice"``. Defaults to none.
-        nullable: ``null`` is allowed too. Defaults to ``False``.
-        required: the key must be present (the trainer reads it without a default).
-            Defaults to ``True``.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.config import Setting
-        >>> Setting("float", 0, 1, low_open=True).check("ppo.gamma", 0.99)
-        >>> try:
-        ...     Setting("float", 0, 1, low_open=True).check("ppo.gamma", 5)
-        ... except ValueError as err:
-        ...     print(err)
-        ppo.gamma must be a number in (0, 1], got 5
-    """
-
-    kind: str
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-    choices: tuple[Any, ...] = ()
-    nullable: bool = False
-    required: bool = True
-
-    def describe(self) -> str:
-        """What the setting must be, in words (``"a number in (0, 1]"``)."""
-        what = {
-            "int": "an integer",
-            "float": "a number",
-            "bool": "true or false",
-            "str": "a string",
-            "sizes": "a list of integers >= 1",
-        }.get(self.kind, "")
-        if self.kind in ("int", "float"):
-            if self.low is not None and self.high is not None:
-                left = "(" if self.low_open else "["
-                right = ")" if self.high_open else "]"
-                what += f" in {left}{_fmt(self.low)}, {_fmt(self.high)}{right}"
-            elif self.low is not None:
-                what += f" {'>' if self.low_open else '>='} {_fmt(self.low)}"
-            elif self.high is not None:
-                what += f" {'<' if self.high_open else '<='} {_fmt(self.high)}"
-            elif self.kind == "float":
-                what = "a finite number"
-        return f"null or {what}" if self.nullable else what
-
-    def check(self, key: str, value: Any) -> None:
-        """Raises :class:`ConfigError` naming ``key`` and ``value`` unless the value fits."""
-        if value is None and self.nullable:
-            return
-        if self.kind == "choice":
-            if value not in self.choices:
-                raise ConfigError(
-                    f"{key}={value!r} is not supported; allowed: {list(self.choices)}"
-                )
-            return
-        if not self._fits(value):
-            raise ConfigError(f"{key} must be {self.describe()}, got {value!r}")
-
-    def _fits(self, value: Any) -> bool:
-        if self.kind == "bool":
-            return isinstance(value, bool)
-        if self.kind == "str":
-            return isinstance(value, str) and bool(value)
-        if self.kind == "sizes":
-            return (
-                isinstance(value, Sequence | ListConfig)
-                and not isinstance(value, str)
-                and all(_is_int(h) and h >= 1 for h in value)
-            )
-        if self.kind == "int" and not _is_int(value):
-            return False
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            return False
-        if not math.isfinite(value):
-            return False
-        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
-            return False
-        return self.high is None or (value < self.high if self.high_open else value <= self.high)
-
-
-def _fmt(bound: float) -> str:
-    return str(bound) if isinstance(bound, int) else f"{bound:g}"
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _int(low: int | None = None, **kw: Any) -> Setting:
     return Setting("int", low, **kw)
 
 
-def _num(low: float | None = None, high: float | None = None, **kw: Any) -> Setting:
-    return Setting("float", low, high, **kw)
-
-
-_UNIT = _num(0, 1, low_open=True)  # (0, 1]
-_FRACTION = _num(0, 1, low_open=True, high_open=True)  # (0, 1)
 _OPTIONAL = {"required": False}
 
-#: Every setting of the ``train`` config (flattened keys), with its type and range. A key of
-#: the composed config that is not here is refused as unknown (a typo such as
-#: ``planer.horizon`` would otherwise be ignored). The entries under ``reward.kwargs`` are
-#: checked against the reward's constructor; ``experiment`` (a preset's name and budgets) is
-#: free-form: its values reach the trainer only through the settings below.
+#: The trainer's own settings (flattened keys), with their type and range. The keys of the
+#: component groups (:data:`~torchrl_mbmf.trainers.components.DEFAULT_TARGETS`) are the
+#: keyword arguments of their builders, which check them; any other key of the composed
+#: config is refused as unknown (a typo such as ``planer.horizon`` would otherwise be
+#: ignored). The entries under ``reward.kwargs`` are checked against the reward's
+#: constructor; ``experiment`` (a preset's name and budgets) is free-form: its values reach
+#: the trainer only through the settings.
 TRAIN_SETTINGS: dict[str, Setting] = {
     "method": Setting("choice", choices=METHODS),
     "seed": _int(0, high=MAX_SEED),
@@ -166,68 +79,13 @@ TRAIN_SETTINGS: dict[str, Setting] = {
     "run_name": Setting("str", **_OPTIONAL),
     "run_dir": Setting("str", **_OPTIONAL),
     "budget.name": Setting("str", **_OPTIONAL),
-    "logger.backend": Setting("choice", choices=LOGGERS),
     "env.id": Setting("str"),
     "env.num_envs": _int(1),
     "env.device": Setting("str"),
     "reward.name": Setting("choice", choices=tuple(sorted(REWARDS))),
     "reward.kwargs": Setting("dict", nullable=True, **_OPTIONAL),
-    "world_model.hidden_sizes": Setting("sizes"),
-    "world_model.lr": _num(0, low_open=True),
-    "world_model.batch_size": _int(1),
-    "world_model.max_epochs": _int(1),
-    "world_model.val_fraction": _FRACTION,
-    "world_model.patience": _int(1),
-    "world_model.random_steps": _int(1),
-    "world_model.refit_every": _int(1),
-    "world_model.multi_step": _int(1, **_OPTIONAL),
-    "world_model.multi_step_weight": _num(0, **_OPTIONAL),
-    "world_model.early_stopping": Setting("choice", choices=EARLY_STOPPING, **_OPTIONAL),
-    "world_model.ensemble_size": _int(1, **_OPTIONAL),
-    "world_model.probabilistic": Setting("bool", **_OPTIONAL),
-    "world_model.adaptive_horizon": Setting("bool", **_OPTIONAL),
-    "world_model.save_fits": Setting("bool", **_OPTIONAL),
-    "world_model.disagreement_quantile": Setting(
-        "float", 0, 1, low_open=True, high_open=True, required=False
-    ),
-    "planner.num_candidates": _int(1),
-    "planner.horizon": _int(1),
-    "planner.discount": _UNIT,
-    "planner.terminal_value": Setting("bool", **_OPTIONAL),
-    "planner.refinement": Setting("choice", choices=REFINEMENTS, **_OPTIONAL),
-    "planner.iterations": _int(1, **_OPTIONAL),
-    "planner.num_elites": _int(1, **_OPTIONAL),
-    "planner.policy_fraction": Setting("float", 0, 1, high_open=True, required=False),
-    "planner.temperature": _num(0, low_open=True, **_OPTIONAL),
-    "planner.min_std": _num(0, **_OPTIONAL),
-    "ppo.frames_per_batch": _int(1),
-    "ppo.minibatch_size": _int(1),
-    "ppo.epochs": _int(1),
-    "ppo.clip_epsilon": _UNIT,
-    "ppo.entropy_coeff": _num(0),
-    "ppo.critic_coeff": _num(0),
-    "ppo.gamma": _UNIT,
-    "ppo.lmbda": _num(0, 1),
-    "ppo.lr": _num(0, low_open=True),
-    "ppo.max_grad_norm": _num(0, low_open=True),
-    "ppo.hidden_sizes": Setting("sizes"),
-    "ppo.distribution": Setting("choice", choices=DISTRIBUTIONS),
-    "ppo.init_log_std": _num(),
-    "sac.frames_per_batch": _int(1),
-    "sac.utd_ratio": _num(0, low_open=True),
-    "sac.batch_size": _int(1),
-    "sac.init_random_frames": _int(0),
-    "sac.replay_size": _int(1),
-    "sac.hidden_sizes": Setting("sizes"),
-    "sac.lr": _num(0, low_open=True),
-    "sac.gamma": _UNIT,
-    "sac.tau": _UNIT,
-    "sac.alpha_init": _num(0, low_open=True),
-    "sac.update": Setting("choice", choices=SAC_UPDATES, **_OPTIONAL),
-    "ppo.update": Setting("choice", choices=PPO_UPDATES, **_OPTIONAL),
     "collector": Setting("choice", choices=COLLECTORS, **_OPTIONAL),
     "device": Setting("str", **_OPTIONAL),
-    "sac.refit_every_steps": _int(1),
 }
 #: Subtrees whose keys are not fixed (see :data:`TRAIN_SETTINGS`).
 FREE_FORM: tuple[str, ...] = ("experiment",)
@@ -280,30 +138,55 @@ def flatten_config(cfg: Any, prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+def train_setting_keys(cfg: Any) -> dict[str, bool]:
+    """Every key the train config may hold, with whether it is required.
+
+    The trainer's own (:data:`TRAIN_SETTINGS`) and, for each component group, ``_target_``
+    and its builder's keyword arguments (:func:`~torchrl_mbmf.trainers.components.group_keys`).
+
+    Args:
+        cfg: the config (its ``_target_`` entries name the builders).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.config import train_setting_keys
+        >>> cfg = {g: {} for g in ("ppo", "sac", "world_model", "planner", "logger")}
+        >>> keys = train_setting_keys(cfg)
+        >>> keys["planner.horizon"], keys["planner.discount"], keys["ppo.gamma"]
+        (True, False, True)
+    """
+    keys = {key: setting.required for key, setting in TRAIN_SETTINGS.items()}
+    for group in DEFAULT_TARGETS:
+        if group not in cfg:
+            raise ConfigError(f"the {group} group is missing from the train config")
+        names, required = group_keys(group_target(cfg, group))
+        keys[f"{group}._target_"] = False
+        keys.update({f"{group}.{name}": name in required for name in names})
+    return keys
+
+
 def _check_settings(cfg: Any) -> None:
-    """Unknown keys, missing keys, types and ranges of every setting (see TRAIN_SETTINGS)."""
+    """Unknown and missing keys, and the type and range of the trainer's own settings."""
     tree = _resolved(cfg)
     kwargs_node = tree.get("reward", {}).get("kwargs")
     flat = flatten_config({k: v for k, v in tree.items() if k not in FREE_FORM})
     flat = {k: v for k, v in flat.items() if not k.startswith("reward.kwargs.")}
     if "reward" in tree and "kwargs" in tree["reward"]:
         flat["reward.kwargs"] = kwargs_node
+    known = train_setting_keys(tree)
     for key in flat:
-        if key not in TRAIN_SETTINGS:
-            close = difflib.get_close_matches(key, list(TRAIN_SETTINGS), n=1, cutoff=0.6)
+        if key not in known:
+            close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
             hint = f"; did you mean {close[0]!r}?" if close else ""
             raise ConfigError(
                 f"{key} is not a setting of the train config{hint} (a typo, or a key added "
                 "with + that nothing reads)"
             )
+    for key, required in known.items():
+        if required and key not in flat:
+            raise ConfigError(f"{key} is missing from the train config")
     for key, setting in TRAIN_SETTINGS.items():
-        if key not in flat:
-            if setting.required:
-                raise ConfigError(f"{key} is missing from the train config")
-            continue
-        if setting.kind == "dict":
-            continue
-        setting.check(key, flat[key])
+        if key in flat:
+            setting.check(key, flat[key])
     _check_reward_kwargs(tree["reward"]["name"], kwargs_node or {})
 
 
@@ -324,13 +207,22 @@ def _check_reward_kwargs(name: str, kwargs: Mapping[str, Any]) -> None:
         raise ConfigError(f"reward.kwargs: {err}") from err
 
 
+def _count(value: Any) -> int | None:
+    """``value`` if it is an integer >= 1, else ``None`` (its constructor reports it)."""
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= 1
+    return value if ok else None
+
+
 def validate_train_config(cfg: Any) -> None:
     """Checks a composed ``train`` config before anything is built.
 
-    Every key must be a setting of :data:`TRAIN_SETTINGS` (unknown keys are refused, naming
-    the key and the setting probably meant), of its type and inside its range; the reward's
-    keyword arguments must be accepted by its constructor; then the settings are checked
-    against each other (batch sizes, budgets, planner variants).
+    The trainer's own settings (:data:`TRAIN_SETTINGS`) must be of their type and inside
+    their range; every key must be one of :func:`train_setting_keys` (unknown keys are
+    refused, naming the key and the setting probably meant); the reward's keyword arguments
+    must be accepted by its constructor; then the settings are checked against each other
+    (batch sizes, budgets, planner and world-model variants). A component group's own values
+    are checked by its constructor when the run builds it (before any work); a check across
+    keys skips a value its constructor will refuse.
 
     Args:
         cfg: the composed config (an OmegaConf ``DictConfig`` or a nested dict).
@@ -358,100 +250,63 @@ def validate_train_config(cfg: Any) -> None:
         resolve_device(cfg.get("device", "cpu"))
     except DeviceError as err:
         raise ConfigError(str(err)) from err
-    reward = cfg["reward"]["name"]
-    if reward not in REWARDS:
-        raise ConfigError(f"reward.name={reward!r} is not a reward; allowed: {sorted(REWARDS)}")
-    if cfg["logger"]["backend"] not in LOGGERS:
-        raise ConfigError(
-            f"logger.backend={cfg['logger']['backend']!r} is not supported; allowed: "
-            f"{list(LOGGERS)}"
-        )
-    if cfg["sac"].get("update", "stock") not in SAC_UPDATES:
-        raise ConfigError(
-            f"sac.update={cfg['sac']['update']!r} is not supported; allowed: {list(SAC_UPDATES)}"
-        )
-    if not 0 < cfg["planner"]["discount"] <= 1:
-        raise ConfigError(f"planner.discount must be in (0, 1], got {cfg['planner']['discount']}")
+    _check_budgets(cfg, method)
     _check_planner_variants(cfg, method)
     _check_world_model_variants(cfg, method)
+
+
+def _check_budgets(cfg: Any, method: str) -> None:
     n_envs = int(cfg["env"]["num_envs"])
     algo = "ppo" if method in PPO_METHODS else "sac"
-    frames = int(cfg[algo]["frames_per_batch"])
-    if frames % n_envs:
+    frames = _count(cfg[algo]["frames_per_batch"])
+    if frames is not None and frames % n_envs:
         raise ConfigError(
             f"{algo}.frames_per_batch={frames} must be a multiple of env.num_envs={n_envs}"
         )
-    if method in PPO_METHODS and frames % int(cfg["ppo"]["minibatch_size"]):
+    minibatch = _count(cfg["ppo"]["minibatch_size"])
+    if method in PPO_METHODS and frames and minibatch and frames % minibatch:
         raise ConfigError(
-            f"ppo.frames_per_batch={frames} must be a multiple of "
-            f"ppo.minibatch_size={cfg['ppo']['minibatch_size']}"
+            f"ppo.frames_per_batch={frames} must be a multiple of ppo.minibatch_size={minibatch}"
         )
     total = int(cfg["total_steps"])
-    if method in ("mpc", "ppo_mpc"):
+    random_steps = _count(cfg["world_model"]["random_steps"])
+    if method in ("mpc", "ppo_mpc") and frames and random_steps:
         updates = int(cfg["planning_updates"])
-        if updates < 0:
-            raise ConfigError(f"planning_updates must be >= 0, got {updates}")
-        needed = int(cfg["world_model"]["random_steps"]) + updates * frames
+        needed = random_steps + updates * frames
         if needed > total:
             raise ConfigError(
                 f"planning_updates={updates} needs world_model.random_steps + planning_updates "
                 f"x ppo.frames_per_batch = {needed} real steps, beyond total_steps={total}"
             )
-    if method in MODEL_BASED and int(cfg["world_model"]["random_steps"]) >= total:
+    if method in MODEL_BASED and random_steps and random_steps >= total:
         raise ConfigError(
-            f"world_model.random_steps={cfg['world_model']['random_steps']} leaves no steps "
+            f"world_model.random_steps={random_steps} leaves no steps "
             f"of total_steps={total} for training"
         )
 
 
 def _check_planner_variants(cfg: Any, method: str) -> None:
     planner = cfg["planner"]
-    value = planner.get("terminal_value", False)
-    if not isinstance(value, bool):
-        raise ConfigError(f"planner.terminal_value must be true or false, got {value!r}")
     refinement = planner.get("refinement")
-    if refinement not in REFINEMENTS:
-        raise ConfigError(
-            f"planner.refinement={refinement!r} is not supported; allowed: {list(REFINEMENTS)}"
-        )
     if refinement is None:
         return
-    if method not in ("ppo_mpc", "sac_mpc"):
+    if method not in GUIDED:
         raise ConfigError(
             f"planner.refinement={refinement!r} refines around the policy prior; it needs "
             f"method ppo_mpc or sac_mpc, got method={method!r}"
         )
-    elites, m = planner["num_elites"], planner["num_candidates"]
-    if not isinstance(elites, int) or not 1 <= elites <= m:
+    elites, m = planner.get("num_elites", 3), _count(planner["num_candidates"])
+    if m is not None and not (_count(elites) and elites <= m):
         raise ConfigError(
             f"planner.num_elites must be an integer in [1, planner.num_candidates={m}], "
             f"got {elites!r}"
         )
-    if not 0 <= planner["policy_fraction"] < 1:
-        raise ConfigError(
-            f"planner.policy_fraction must be in [0, 1), got {planner['policy_fraction']!r}"
-        )
-    if planner["temperature"] <= 0:
-        raise ConfigError(f"planner.temperature must be > 0, got {planner['temperature']!r}")
-    if planner["min_std"] < 0:
-        raise ConfigError(f"planner.min_std must be >= 0, got {planner['min_std']!r}")
 
 
 def _check_world_model_variants(cfg: Any, method: str) -> None:
-    from torchrl_mbmf.trainers.dynamics import fit_dynamics_kwargs
-
     wm = cfg["world_model"]
-    try:
-        kwargs = fit_dynamics_kwargs(wm)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(str(err)) from err
-    members = wm.get("ensemble_size", 1)
-    if isinstance(members, bool) or not isinstance(members, int) or members < 1:
-        raise ConfigError(f"world_model.ensemble_size must be an integer >= 1, got {members!r}")
-    adaptive = wm.get("adaptive_horizon", False)
-    if not isinstance(adaptive, bool):
-        raise ConfigError(f"world_model.adaptive_horizon must be true or false, got {adaptive!r}")
-    if members > 1 and method not in ("ppo_mpc", "sac_mpc"):
+    members = _count(wm.get("ensemble_size", 1)) or 1
+    if members > 1 and method not in GUIDED:
         raise ConfigError(
             f"world_model.ensemble_size={members} plans with the ensemble policy-guided planner; "
             f"it needs method ppo_mpc or sac_mpc, got method={method!r}"
@@ -461,20 +316,15 @@ def _check_world_model_variants(cfg: Any, method: str) -> None:
             "planner.refinement is not supported with world_model.ensemble_size > 1; set one "
             "of them back (planner.refinement=null or world_model.ensemble_size=1)"
         )
-    if members > 1 and kwargs["multi_step"] > 1:
+    if members > 1 and (_count(wm.get("multi_step", 1)) or 1) > 1:
         raise ConfigError(
             "world_model.multi_step > 1 is implemented for the single model only; set "
             "world_model.ensemble_size=1 or world_model.multi_step=1"
         )
-    if adaptive and members < 2:
+    if wm.get("adaptive_horizon", False) is True and members < 2:
         raise ConfigError(
             "world_model.adaptive_horizon needs an ensemble (world_model.ensemble_size >= 2), "
             f"got ensemble_size={members}"
-        )
-    if adaptive and not 0 < wm.get("disagreement_quantile", 0.9) < 1:
-        raise ConfigError(
-            "world_model.disagreement_quantile must be in (0, 1), got "
-            f"{wm.get('disagreement_quantile')!r}"
         )
 
 
@@ -510,7 +360,9 @@ def resume_changes(
 
     Returns:
         ``(refused, allowed)``, each ``{key: (saved value, new value)}``; a key missing on one
-        side has the value ``"<missing>"`` there. ``allowed`` holds the keys of
+        side has the value ``"<missing>"`` there, except a group's ``_target_``, which a
+        config without one means to be the group's default builder
+        (:data:`~torchrl_mbmf.trainers.components.DEFAULT_TARGETS`). ``allowed`` holds the keys of
         :data:`RESUME_SAFE_SETTINGS`.
 
     Examples:
@@ -523,7 +375,7 @@ def resume_changes(
     refused: dict[str, tuple[Any, Any]] = {}
     allowed: dict[str, tuple[Any, Any]] = {}
     for key in sorted(set(saved) | set(now)):
-        old, new = saved.get(key, missing), now.get(key, missing)
+        old, new = saved.get(key, _implied(key, missing)), now.get(key, _implied(key, missing))
         if _same(old, new):
             continue
         safe = any(
@@ -531,6 +383,15 @@ def resume_changes(
         )
         (allowed if safe else refused)[key] = (old, new)
     return refused, allowed
+
+
+def _implied(key: str, missing: str) -> str:
+    """The value a config without ``key`` means (``missing`` but for a group's ``_target_``).
+
+    A config written before the groups named their builders means the default ones.
+    """
+    group, _, name = key.partition(".")
+    return DEFAULT_TARGETS[group] if name == "_target_" and group in DEFAULT_TARGETS else missing
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -8,6 +8,7 @@ says which policy acts, the agent learns from every batch, and the hooks
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -18,7 +19,6 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import RandomPolicy
-from torchrl.record.loggers import get_logger
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.trainers.agents import make_agent
@@ -29,10 +29,15 @@ from torchrl_mbmf.trainers.build import (
     make_train_env,
     seed_everything,
 )
-from torchrl_mbmf.trainers.config import PPO_METHODS, flatten_config, validate_train_config
+from torchrl_mbmf.trainers.components import instantiate_group
+from torchrl_mbmf.trainers.config import (
+    MODEL_BASED,
+    PPO_METHODS,
+    flatten_config,
+    validate_train_config,
+)
 from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.guards import check_finite
-from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.resume import RunCheckpoint, fingerprint, write_run_record
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
 
@@ -91,8 +96,6 @@ class Trainer:
         validate_train_config(cfg)
         self.cfg = cfg
         self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        self.schedule = PhaseSchedule.from_config(cfg)
         seed_everything(int(cfg.seed))
         self.times = dict.fromkeys(self.TIME_KEYS, 0.0)
         if cfg.get("threads") is not None:
@@ -101,6 +104,23 @@ class Trainer:
         self.device = resolve_device(cfg.get("device", "cpu"))
         self.env = make_train_env(cfg, int(cfg.seed))
         self.eval_env = make_train_env(cfg, int(cfg.seed) + 1000, num_envs=1)
+        # The config groups' components (components.instantiate_group): their constructors
+        # check every argument, so a bad value stops the run here, before any work.
+        family = "ppo" if cfg.method in PPO_METHODS else "sac"
+        self.agent = make_agent(family, self.env, cfg, self.device)
+        self.world = None
+        if cfg.method in MODEL_BASED:
+            self.world = instantiate_group(
+                cfg,
+                "world_model",
+                env=self.env,
+                agent=self.agent,
+                device=self.device,
+                planner=functools.partial(instantiate_group, cfg, "planner"),
+                seed=int(cfg.seed),
+                guided=cfg.method != "mpc",
+            )
+        self.schedule = PhaseSchedule.from_config(cfg)
         self.progress: dict[str, Any] = {
             "real_steps": 0,
             "random_steps": 0,
@@ -116,16 +136,10 @@ class Trainer:
             # the whole resolved config: a resume refuses any change that affects training
             "config": flatten_config(cfg),
         }
-        family = "ppo" if cfg.method in PPO_METHODS else "sac"
-        self.agent = make_agent(family, self.env, cfg, self.device)
         self.frames_per_batch = int(cfg[family].frames_per_batch)
         self.total_steps = int(cfg.total_steps)
-        self.world = None
-        if self.schedule.model_based:
-            self.world = WorldModelPart(cfg, self.env, self.agent, self.device)
-        self.logger = get_logger(
-            cfg.logger.backend, logger_name=str(self.run_dir), experiment_name="logs"
-        )
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.logger = instantiate_group(cfg, "logger", run_dir=self.run_dir)
         self.hooks, named = make_hooks(cfg, self.schedule.model_based)
         self.bar, self.timing, self.checkpoints = (
             named["bar"],
@@ -170,7 +184,7 @@ class Trainer:
     def collect_random(self) -> None:
         """Random-policy real steps that fit the first model (counted in the budget)."""
         self.acting = Actor.RANDOM
-        steps = int(self.cfg.world_model.random_steps)
+        steps = self.world.random_steps
         n = max(1, self.env.batch_size.numel())
         frames = min(1000 * n, -(-steps // n) * n)
         collector = self.collector(Actor.RANDOM, frames, -(-steps // frames) * frames)

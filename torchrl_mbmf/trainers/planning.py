@@ -1,13 +1,14 @@
 """The model-based part of a run: world model, its data, its refits and the MPC planner.
 
-Built from the ``world_model`` and ``planner`` config groups with the components' own
-constructors (which validate their arguments); the loop sees :class:`WorldModelPart`.
+Built from the ``world_model`` and ``planner`` config groups, whose ``_target_`` are
+:class:`WorldModelPart` and :func:`make_planner`; the components' constructors check their
+arguments. The loop sees :class:`WorldModelPart`.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,81 +22,104 @@ from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
 from torchrl_mbmf.envs.factory import env_metadata
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
-from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel, check_hidden_sizes
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 from torchrl_mbmf.modules.planners import (
     EnsemblePolicyGuidedPlanner,
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
+from torchrl_mbmf.trainers.components import Setting, check_arguments, settings
 from torchrl_mbmf.trainers.dynamics import fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.trainers.fit_records import heldout_open_loop_errors, save_fit_snapshot
 
 __all__ = ["WorldModelPart", "make_planner", "make_world_model"]
 
-#: Refinement settings a ``planner`` group passes to the policy-guided planners.
-REFINEMENT_KEYS: dict[str, type] = {
-    "iterations": int,
-    "num_elites": int,
-    "policy_fraction": float,
-    "temperature": float,
-    "min_std": float,
-}
-
 
 def make_world_model(
-    world_model: Mapping[str, Any], env: EnvBase
+    env: EnvBase,
+    *,
+    hidden_sizes: Sequence[int],
+    ensemble_size: int = 1,
+    probabilistic: bool = False,
 ) -> DeltaDynamicsModel | EnsembleDeltaDynamicsModel:
-    """The world model a ``world_model`` config group describes, sized from ``env``.
+    """The world-model network of the ``world_model`` group's architecture keys, sized from ``env``.
 
     Args:
-        world_model: the ``world_model`` group (``hidden_sizes``, ``ensemble_size``,
-            ``probabilistic``).
         env: the real env (state and action sizes).
+
+    Keyword Args:
+        hidden_sizes: hidden layers (checked by the network's constructor).
+        ensemble_size: members; ``1`` builds one :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`
+            (the thesis), more an :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel`.
+            Defaults to ``1``.
+        probabilistic: Gaussian outputs (ensemble only). Defaults to ``False``.
 
     Examples:
         >>> from torchrl_mbmf.envs import make_env
         >>> from torchrl_mbmf.trainers.planning import make_world_model
-        >>> model = make_world_model({"hidden_sizes": [8]}, make_env("Pendulum-v1"))
-        >>> type(model).__name__
+        >>> type(make_world_model(make_env("Pendulum-v1"), hidden_sizes=[8])).__name__
         'DeltaDynamicsModel'
     """
+    check_arguments(settings(positive_int=("ensemble_size",), flag=("probabilistic",)), locals())
     state_dim = env.full_observation_spec_unbatched[STATE_KEY].shape[-1]
     action_dim = env.full_action_spec_unbatched[env.action_key].shape[-1]
-    hidden = tuple(world_model["hidden_sizes"])
-    members = int(world_model.get("ensemble_size", 1))
-    if members > 1:
+    hidden = check_hidden_sizes(hidden_sizes)
+    if ensemble_size > 1:
         return EnsembleDeltaDynamicsModel(
             state_dim,
             action_dim,
-            num_members=members,
+            num_members=ensemble_size,
             hidden_sizes=hidden,
-            probabilistic=bool(world_model.get("probabilistic", False)),
+            probabilistic=probabilistic,
         )
     return DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=hidden)
 
 
 def make_planner(
-    planner: Mapping[str, Any],
     model_env: EnvBase,
     actor: TensorDictModuleBase,
-    *,
-    guided: bool,
+    guided: bool = True,
     value_module: TensorDictModuleBase | None = None,
+    *,
+    num_candidates: int,
+    horizon: int,
+    discount: float = 1.0,
+    terminal_value: bool = False,
+    refinement: str | None = None,
+    iterations: int = 2,
+    policy_fraction: float = 1 / 3,
+    num_elites: int = 3,
+    temperature: float = 1.0,
+    min_std: float = 0.05,
 ) -> TensorDictModuleBase:
-    """The MPC planner a ``planner`` config group describes.
+    """The MPC planner of the ``planner`` config group (its ``_target_``).
+
+    The keyword arguments are the group's keys; each goes to the planner's constructor,
+    which checks it. The refinement keys reach the policy-guided planners only with a
+    ``refinement``.
 
     Args:
-        planner: the ``planner`` group.
         model_env: the learned-dynamics env the planner imagines in (an ensemble env picks
             the ensemble planner).
         actor: the policy (the prior of the guided planners; the random-shooting planner
             only records its log-probabilities).
+        guided: the policy-guided planner (``ppo_mpc``, ``sac_mpc``) or random shooting
+            (``mpc``). Defaults to ``True``.
+        value_module: the terminal value (used when ``terminal_value`` is true).
 
     Keyword Args:
-        guided: the policy-guided planner (``ppo_mpc``, ``sac_mpc``) or random shooting (``mpc``).
-        value_module: the terminal value (used when ``planner.terminal_value`` is true).
+        num_candidates: candidate action sequences.
+        horizon: imagined steps.
+        discount: reward discount of a candidate's score. Defaults to ``1.0``.
+        terminal_value: add ``discount^h V(s_h)`` to each score. Defaults to ``False``.
+        refinement: ``None``, ``"cem"`` or ``"mppi"`` (guided planners). Defaults to ``None``.
+        iterations: refinement rounds. Defaults to ``2``.
+        policy_fraction: share of candidates kept from the policy. Defaults to ``1/3``.
+        num_elites: CEM elites. Defaults to ``3``.
+        temperature: MPPI temperature. Defaults to ``1.0``.
+        min_std: smallest refinement std. Defaults to ``0.05``.
 
     Examples:
         >>> from torchrl_mbmf.envs import LearnedDynamicsEnv, make_env
@@ -104,22 +128,29 @@ def make_planner(
         >>> env = make_env("Pendulum-v1")
         >>> actor, _ = make_ppo_actor_critic(env, hidden_sizes=(8,))
         >>> model_env = LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), env)
-        >>> cfg = {"num_candidates": 4, "horizon": 2, "discount": 1.0}
-        >>> type(make_planner(cfg, model_env, actor, guided=True)).__name__
+        >>> planner = make_planner(model_env, actor, num_candidates=4, horizon=2)
+        >>> type(planner).__name__
         'PolicyGuidedMPCPlanner'
     """
+    check_arguments(settings(flag=("terminal_value",)), locals())
     kwargs: dict[str, Any] = {
-        "num_candidates": int(planner["num_candidates"]),
-        "horizon": int(planner["horizon"]),
-        "discount": float(planner["discount"]),
+        "num_candidates": num_candidates,
+        "horizon": horizon,
+        "discount": discount,
     }
-    if planner.get("terminal_value", False):
+    if terminal_value:
         kwargs["value_module"] = value_module
     if not guided:
         return RandomShootingMPCPlanner(model_env, actor=actor, **kwargs)
-    if planner.get("refinement"):
-        kwargs["refinement"] = str(planner["refinement"])
-        kwargs.update({key: cast(planner[key]) for key, cast in REFINEMENT_KEYS.items()})
+    if refinement is not None:
+        kwargs.update(
+            refinement=refinement,
+            iterations=iterations,
+            num_elites=num_elites,
+            policy_fraction=policy_fraction,
+            temperature=temperature,
+            min_std=min_std,
+        )
     if isinstance(model_env, EnsembleLearnedDynamicsEnv):
         # Candidate i rolls in member i mod K; with world_model.adaptive_horizon the
         # threshold is calibrated at every refit (None until the first one).
@@ -130,11 +161,33 @@ def make_planner(
 class WorldModelPart:
     """World model, optimiser, real-transition dataset and planner of a model-based run.
 
+    The builder of the ``world_model`` config group (its ``_target_``): the keyword arguments
+    are the group's keys. The part takes the whole group and forwards each key to what it
+    configures: the architecture keys to the network (:func:`make_world_model`), the fit keys
+    to the fit (:func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics_kwargs`), and keeps the
+    schedule and record keys; each is checked here, before anything is built.
+
     Args:
-        cfg: the training config (reads ``world_model``, ``planner``, ``method``, ``seed``).
         env: the real env.
         agent: the agent whose actor guides the planner (and whose value ends its rollouts).
         device: device of the model and planner.
+        planner: builds the planner from keyword arguments ``model_env``, ``actor``,
+            ``guided`` and ``value_module`` (the agent's value), e.g. :func:`make_planner`
+            with the ``planner`` group's keys bound, or the group through
+            :func:`~torchrl_mbmf.trainers.components.instantiate_group`.
+        seed: the run's seed (the dataset's record and the held-out scoring).
+        guided: the policy-guided planner (else random shooting, ``mpc``). Defaults to ``True``.
+
+    Keyword Args:
+        hidden_sizes, ensemble_size, probabilistic: the network (:func:`make_world_model`).
+        lr, batch_size, max_epochs, val_fraction, patience, multi_step, multi_step_weight,
+            early_stopping: the fit (:func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics`).
+        random_steps: random-policy real steps before the first fit.
+        refit_every: policy updates between refits (``mpc``, ``ppo_mpc``).
+        save_fits: keep each fit's weights under the run folder. Defaults to ``True``.
+        adaptive_horizon: calibrate the ensemble planner's disagreement threshold at every
+            refit. Defaults to ``False``.
+        disagreement_quantile: the held-out quantile of that threshold. Defaults to ``0.9``.
 
     Examples:
         >>> from torchrl_mbmf.trainers.planning import WorldModelPart
@@ -147,24 +200,74 @@ class WorldModelPart:
     #: The progress entry holding the dataset's length at the last fit (rows after it are
     #: held-out data of the policy's own episodes for the model that fit produced).
     LAST_FIT = "last_fit_transitions"
+    #: The range of each argument the part reads itself (the network's and the multi-step
+    #: fit's are checked by their constructors), checked by the constructor.
+    ARGUMENTS: dict[str, Setting] = settings(
+        positive_int=("random_steps", "refit_every", "batch_size", "max_epochs", "patience"),
+        positive=("lr",),
+        flag=("save_fits", "adaptive_horizon"),
+        fraction=("val_fraction", "disagreement_quantile"),
+    )
 
-    def __init__(self, cfg: Any, env: EnvBase, agent: Any, device: torch.device) -> None:
-        self.cfg = cfg.world_model
-        self.model = make_world_model(self.cfg, env).to(device)
+    def __init__(
+        self,
+        env: EnvBase,
+        agent: Any,
+        device: torch.device,
+        planner: Callable[..., TensorDictModuleBase],
+        seed: int,
+        guided: bool = True,
+        *,
+        hidden_sizes: Sequence[int],
+        lr: float,
+        batch_size: int,
+        max_epochs: int,
+        val_fraction: float,
+        patience: int,
+        random_steps: int,
+        refit_every: int,
+        save_fits: bool = True,
+        multi_step: int = 1,
+        multi_step_weight: float = 1.0,
+        early_stopping: str = "objective",
+        ensemble_size: int = 1,
+        probabilistic: bool = False,
+        adaptive_horizon: bool = False,
+        disagreement_quantile: float = 0.9,
+    ) -> None:
+        check_arguments(self.ARGUMENTS, locals())
+        self.fit_kwargs = fit_dynamics_kwargs(
+            {
+                "lr": lr,
+                "batch_size": batch_size,
+                "max_epochs": max_epochs,
+                "val_fraction": val_fraction,
+                "patience": patience,
+                "multi_step": multi_step,
+                "multi_step_weight": multi_step_weight,
+                "early_stopping": early_stopping,
+            }
+        )
+        self.random_steps, self.refit_every = random_steps, refit_every
+        self.save_fits, self.adaptive_horizon = save_fits, adaptive_horizon
+        self.disagreement_quantile = float(disagreement_quantile)
+        self.model = make_world_model(
+            env,
+            hidden_sizes=hidden_sizes,
+            ensemble_size=ensemble_size,
+            probabilistic=probabilistic,
+        ).to(device)
         if isinstance(self.model, EnsembleDeltaDynamicsModel):
             model_env = EnsembleLearnedDynamicsEnv(self.model, env)
         else:
             model_env = LearnedDynamicsEnv(self.model, env)
-        self.optim = torch.optim.Adam(self.model.parameters(), lr=float(self.cfg.lr))
-        self.seed = int(cfg.seed)
+        self.optim = torch.optim.Adam(self.model.parameters(), lr=float(lr))
+        self.seed = int(seed)
         self.dataset = TransitionDataset({**env_metadata(env), "seed": self.seed})
-        value = agent.terminal_value() if cfg.planner.get("terminal_value", False) else None
-        self.planner = make_planner(
-            cfg.planner,
-            model_env,
-            agent.actor,
-            guided=cfg.method != "mpc",
-            value_module=value,
+        # the agent's value: the planner's terminal value with planner.terminal_value=true
+        value = agent.terminal_value()
+        self.planner = planner(
+            model_env=model_env, actor=agent.actor, guided=guided, value_module=value
         )
 
     def checkpoint_components(self) -> dict[str, Any]:
@@ -210,7 +313,7 @@ class WorldModelPart:
                 length at this fit).
             run_dir: the run folder for the fit snapshots (``None``: none kept).
         """
-        wm = self.cfg
+        fit = self.fit_kwargs
         since = progress.get(self.LAST_FIT)
         heldout: dict[str, float] = {}
         if since is not None and isinstance(self.model, DeltaDynamicsModel):
@@ -222,17 +325,12 @@ class WorldModelPart:
             history = fit_ensemble(
                 self.model,
                 self.dataset,
-                batch_size=int(wm.batch_size),
-                max_epochs=int(wm.max_epochs),
-                val_fraction=float(wm.val_fraction),
-                patience=int(wm.patience),
+                **{k: fit[k] for k in ("batch_size", "max_epochs", "val_fraction", "patience")},
                 seed=seed,
                 optimizer=self.optim,
             )
         else:
-            history = fit_dynamics(
-                self.model, self.dataset, **fit_dynamics_kwargs(wm), seed=seed, optimizer=self.optim
-            )
+            history = fit_dynamics(self.model, self.dataset, **fit, seed=seed, optimizer=self.optim)
         scalars = {
             "model/train_loss": history.train_loss[-1],
             "model/val_loss": history.best_val_loss,
@@ -242,13 +340,13 @@ class WorldModelPart:
         if getattr(history, "multi_step", 1) > 1:
             scalars["model/train_multi_step_loss"] = history.train_multi_step_loss[-1]
             scalars["model/val_multi_step_loss"] = history.best_val_multi_step_loss
-        if isinstance(self.model, EnsembleDeltaDynamicsModel) and wm.get("adaptive_horizon"):
+        if isinstance(self.model, EnsembleDeltaDynamicsModel) and self.adaptive_horizon:
             threshold = self._calibrate(history.val_indices)
             progress[self.CALIBRATED] = threshold
             self.planner.disagreement_threshold = threshold
             scalars["model/disagreement_threshold"] = threshold
         progress[self.LAST_FIT] = len(self.dataset)
-        if run_dir is not None and wm.get("save_fits", True):
+        if run_dir is not None and self.save_fits:
             save_fit_snapshot(self.model, run_dir, len(self.dataset))
         scalars["time/model_fit_s"] = time.perf_counter() - start
         return {**heldout, **scalars}
@@ -261,6 +359,6 @@ class WorldModelPart:
             td.get(data.state_key).float(),
             td.get(data.action_key).float(),
             td.get(("next", data.state_key)).float(),
-            quantile=float(self.cfg.disagreement_quantile),
+            quantile=self.disagreement_quantile,
         )
         return float(calibration.threshold)

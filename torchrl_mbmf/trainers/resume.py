@@ -75,7 +75,9 @@ def fingerprint(cfg: Any) -> dict[str, Any]:
         for key in ("ensemble_size", "probabilistic", "multi_step", "multi_step_weight"):
             if key in cfg.world_model:
                 out[f"world_model.{key}"] = cfg.world_model[key]
-        out["planner"] = OmegaConf.to_container(cfg.planner, resolve=True)
+        planner = OmegaConf.to_container(cfg.planner, resolve=True)
+        # the builder's name is no setting of the planner (fingerprints predate it)
+        out["planner"] = {k: v for k, v in planner.items() if k != "_target_"}
     if cfg.method in ("mpc", "ppo_mpc"):
         out["planning_updates"] = int(cfg.planning_updates)
     return out

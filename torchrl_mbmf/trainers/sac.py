@@ -96,9 +96,10 @@ class FusedSACUpdate:
         >>> import torch
         >>> from omegaconf import OmegaConf
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.agents import SACAgent
+        >>> from torchrl_mbmf.trainers.agents import make_agent
         >>> env = make_env("Pendulum-v1", seed=0)
-        >>> agent = SACAgent(env, OmegaConf.load("configs/algo/sac.yaml"), torch.device("cpu"))
+        >>> cfg = OmegaConf.create({"sac": OmegaConf.load("configs/algo/sac.yaml")})
+        >>> agent = make_agent("sac", env, cfg, torch.device("cpu"))
         >>> with torch.no_grad():
         ...     batch = env.rollout(8, agent.actor)
         >>> sorted(agent.step(batch))

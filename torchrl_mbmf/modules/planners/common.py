@@ -108,14 +108,13 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         log_prob_key: NestedKey = "action_log_prob",
         stats_key: NestedKey | None = "planner",
     ) -> None:
-        if isinstance(num_candidates, bool) or not isinstance(num_candidates, int):
-            raise TypeError(f"num_candidates must be an int, got {num_candidates!r}")
-        if num_candidates < 1:
-            raise ValueError(f"num_candidates must be an integer >= 1, got {num_candidates!r}")
-        if isinstance(horizon, bool) or not isinstance(horizon, int):
-            raise TypeError(f"horizon must be an int, got {horizon!r}")
-        if horizon < 1:
-            raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+        for name, value in (("num_candidates", num_candidates), ("horizon", horizon)):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise TypeError(f"{name} must be an integer >= 1, got {value!r}")
+            if value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if isinstance(discount, bool) or not isinstance(discount, int | float):
+            raise TypeError(f"discount must be a number in (0, 1], got {discount!r}")
         if not 0.0 < discount <= 1.0:
             raise ValueError(f"discount must be in (0, 1], got {discount}")
         super().__init__(env, action_key=action_key)

@@ -99,7 +99,9 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
         if actor is None:
             raise TypeError("PolicyGuidedMPCPlanner needs a stochastic actor, got None")
         if refinement not in REFINEMENTS:
-            raise ValueError(f"refinement must be one of {REFINEMENTS}, got {refinement!r}")
+            raise ValueError(
+                f"refinement={refinement!r} is not supported; allowed: {list(REFINEMENTS)}"
+            )
         super().__init__(env, actor=actor, **kwargs)
         num_candidates = self.num_candidates
         self.refinement = refinement
