@@ -10,30 +10,11 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import nn
 
+from torchrl_mbmf.checks import check_number
 from torchrl_mbmf.modules.ensemble_layers import EnsembleLinear
 from torchrl_mbmf.modules.members import EnsembleMembers
 from torchrl_mbmf.modules.mlp import build_mlp, check_hidden_sizes
 from torchrl_mbmf.modules.scaling import StandardScaling
-
-
-def check_ensemble_size(value: int, name: str = "ensemble_size") -> int:
-    """Checks an ensemble size ``K``: an integer ``>= 1``.
-
-    Args:
-        value: the size.
-        name: the argument's name in the error message. Defaults to ``"ensemble_size"``.
-
-    Raises:
-        ValueError: naming the argument and the value.
-
-    Examples:
-        >>> from torchrl_mbmf.modules.dynamics import check_ensemble_size
-        >>> check_ensemble_size(5)
-        5
-    """
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return int(value)
 
 
 class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
@@ -121,7 +102,7 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         action_high: float = 1.0,
     ) -> None:
         super().__init__()
-        k = check_ensemble_size(ensemble_size)
+        k = check_number(ensemble_size, "ensemble_size", minimum=1, integer=True)
         if state_dim < 1 or action_dim < 1:
             raise ValueError(
                 f"state_dim and action_dim must be >= 1, got state_dim={state_dim}, "
@@ -309,4 +290,4 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         )
 
 
-__all__ = ["DeltaDynamicsModel", "build_mlp", "check_ensemble_size", "check_hidden_sizes"]
+__all__ = ["DeltaDynamicsModel", "build_mlp", "check_hidden_sizes"]

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from typing import Any
 
-from torch import nn
-
-from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel, check_ensemble_size
+from torchrl_mbmf.checks import check_number
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.ensemble_layers import EnsembleLinear, FusedEnsembleStep
 
 
@@ -34,24 +33,18 @@ class EnsembleDeltaDynamicsModel(DeltaDynamicsModel):
 
     Keyword Args:
         num_members: ensemble size ``K``. Defaults to ``5``.
-        hidden_sizes: hidden layer widths of every member. Defaults to ``(500, 500)``.
-        activation: hidden activation class. Defaults to :class:`torch.nn.ReLU`.
-        probabilistic: members output a mean and a bounded log-variance and train with the
-            Gaussian NLL (needs ``K >= 2``). Defaults to ``False`` (deterministic, MSE).
-        min_log_var: lower soft bound of the log-variance (scaled units). Defaults to
-            ``-10.0``.
-        max_log_var: upper soft bound of the log-variance (scaled units). Defaults to ``0.5``.
-        action_low: lower clip of the action. Defaults to ``-1.0``.
-        action_high: upper clip of the action. Defaults to ``1.0``.
+        **kwargs: the other keywords of :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`,
+            with its defaults: ``hidden_sizes`` (of every member, ``(500, 500)``),
+            ``activation`` (``nn.ReLU``), ``probabilistic`` (Gaussian members trained with
+            the NLL, needs ``K >= 2``; ``False``), ``min_log_var`` (``-10.0``),
+            ``max_log_var`` (``0.5``), ``action_low`` (``-1.0``), ``action_high`` (``1.0``).
 
     Examples:
         >>> import torch
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel, EnsembleDeltaDynamicsModel
-        >>> torch.manual_seed(0)  # doctest: +ELLIPSIS
-        <torch._C.Generator object at ...>
+        >>> _ = torch.manual_seed(0)
         >>> model = EnsembleDeltaDynamicsModel(18, 6, num_members=5, hidden_sizes=(32, 32))
-        >>> torch.manual_seed(0)  # doctest: +ELLIPSIS
-        <torch._C.Generator object at ...>
+        >>> _ = torch.manual_seed(0)
         >>> same = DeltaDynamicsModel(18, 6, ensemble_size=5, hidden_sizes=(32, 32))
         >>> s, a = torch.randn(4, 18), torch.rand(4, 6) * 2 - 1
         >>> torch.equal(model(s, a)[0], same(s, a)[0]), model.config == same.config
@@ -59,31 +52,10 @@ class EnsembleDeltaDynamicsModel(DeltaDynamicsModel):
     """
 
     def __init__(
-        self,
-        state_dim: int,
-        action_dim: int,
-        *,
-        num_members: int = 5,
-        hidden_sizes: Sequence[int] = (500, 500),
-        activation: type[nn.Module] = nn.ReLU,
-        probabilistic: bool = False,
-        min_log_var: float = -10.0,
-        max_log_var: float = 0.5,
-        action_low: float = -1.0,
-        action_high: float = 1.0,
+        self, state_dim: int, action_dim: int, *, num_members: int = 5, **kwargs: Any
     ) -> None:
-        super().__init__(
-            state_dim,
-            action_dim,
-            ensemble_size=check_ensemble_size(num_members, "num_members"),
-            hidden_sizes=hidden_sizes,
-            activation=activation,
-            probabilistic=probabilistic,
-            min_log_var=min_log_var,
-            max_log_var=max_log_var,
-            action_low=action_low,
-            action_high=action_high,
-        )
+        k = check_number(num_members, "num_members", minimum=1, integer=True)
+        super().__init__(state_dim, action_dim, ensemble_size=k, **kwargs)
 
 
 def check_ensemble(model: object, name: str = "world_model") -> DeltaDynamicsModel:

@@ -1,9 +1,10 @@
-"""The hidden-layer check and the MLP builder of the world model (one model or stacked members)."""
+"""The world model's MLP: the hidden-layer check, the builder and the in-place-ReLU forward."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import torch
 from torch import nn
 
 
@@ -77,4 +78,57 @@ def build_mlp(
     return nn.Sequential(*layers)
 
 
-__all__ = ["build_mlp", "check_hidden_sizes"]
+def _plain_mlp(net: nn.Module) -> list[nn.Module] | None:
+    """The layers of ``net`` if it is a plain MLP that an in-place ReLU may run on, else None.
+
+    That is a hook-free ``Sequential`` of ``Linear``/``ReLU`` layers in which every ReLU
+    follows a ``Linear``, so an in-place ReLU only ever overwrites a fresh linear output
+    (never the caller's input nor a tensor saved for the backward pass).
+    """
+    if type(net) is not nn.Sequential or len(net) == 0:
+        return None
+    layers = list(net)
+    if type(layers[0]) is not nn.Linear:
+        return None
+    for i, module in enumerate((net, *layers)):
+        if type(module) not in (nn.Sequential, nn.Linear, nn.ReLU):
+            return None
+        if type(module) is nn.ReLU and type(layers[i - 2]) is not nn.Linear:
+            return None  # an in-place ReLU must follow a Linear (whose output nothing saves)
+        if module._forward_hooks or module._forward_pre_hooks or module._backward_hooks:
+            return None
+    return layers
+
+
+def mlp_forward(net: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``net(x)``, with in-place ReLUs for a plain MLP (same values and gradients, bit for bit).
+
+    For a hook-free :class:`~torch.nn.Sequential` of ``Linear`` and ``ReLU`` layers (the
+    thesis network) the hidden ReLUs run in place on the fresh linear outputs, which saves an
+    allocation and a pass per layer; any other network is called as ``net(x)``. The training
+    loss of the one network (``DynamicsLoss.scaled_loss``) runs through it.
+
+    Args:
+        net: the network.
+        x: its input.
+
+    Examples:
+        >>> import torch
+        >>> from torch import nn
+        >>> from torchrl_mbmf.modules.mlp import build_mlp, mlp_forward
+        >>> net, x = build_mlp(4, (8,), 2, nn.ReLU), torch.randn(5, 4)
+        >>> torch.equal(mlp_forward(net, x), net(x))
+        True
+    """
+    layers = _plain_mlp(net)
+    if layers is None or torch.torch.nn.modules.module._has_any_global_hook():
+        return net(x)
+    for layer in layers:
+        if type(layer) is nn.Linear:
+            x = nn.functional.linear(x, layer.weight, layer.bias)
+        else:
+            x = torch.relu_(x)
+    return x
+
+
+__all__ = ["build_mlp", "check_hidden_sizes", "mlp_forward"]

@@ -11,9 +11,9 @@ from typing import Any
 
 from tensordict import TensorDictBase
 
+from torchrl_mbmf.checks import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.objectives.dynamics_loss import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.trainers.fit_data import MultiStepWindows, transition_tensors
 from torchrl_mbmf.trainers.fit_history import (
     EarlyStopping,

@@ -10,13 +10,10 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
+from torchrl_mbmf.checks import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.objectives.dynamics_loss import (
-    DynamicsLoss,
-    check_multi_step,
-    check_multi_step_weight,
-)
+from torchrl_mbmf.objectives.dynamics_loss import DynamicsLoss
 from torchrl_mbmf.trainers.fit_data import (
     FitSplit,
     MultiStepWindows,
