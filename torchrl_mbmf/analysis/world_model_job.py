@@ -12,11 +12,11 @@ from typing import Any
 import torch
 
 from torchrl_mbmf.analysis.horizon import horizon_predictions, horizon_table
+from torchrl_mbmf.checks import check_multi_step
 from torchrl_mbmf.data.transitions import TransitionDataset, collect_random_transitions
 from torchrl_mbmf.envs.factory import env_metadata, make_env
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.objectives.dynamics_loss import check_multi_step
 from torchrl_mbmf.objectives.open_loop import HorizonError, multistep_mse
 from torchrl_mbmf.trainers.dynamics import fit_dynamics, fit_dynamics_kwargs
 

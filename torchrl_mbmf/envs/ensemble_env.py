@@ -8,7 +8,7 @@ from tensordict.utils import NestedKey
 from torchrl.envs import EnvBase
 
 from torchrl_mbmf.envs.model_based import MEMBER_ASSIGNMENTS, LearnedDynamicsEnv
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
+from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel, check_ensemble
 
 
 class EnsembleLearnedDynamicsEnv(LearnedDynamicsEnv):
@@ -58,11 +58,7 @@ class EnsembleLearnedDynamicsEnv(LearnedDynamicsEnv):
         disagreement_key: NestedKey = "disagreement",
         **kwargs: Any,
     ) -> None:
-        if not isinstance(world_model, EnsembleDeltaDynamicsModel):
-            raise TypeError(
-                "world_model must be an EnsembleDeltaDynamicsModel, got "
-                f"{type(world_model).__name__} (use LearnedDynamicsEnv for a single model)"
-            )
+        check_ensemble(world_model)  # a single model: LearnedDynamicsEnv
         super().__init__(
             world_model,
             env,

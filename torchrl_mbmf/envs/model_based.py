@@ -15,7 +15,6 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl_mbmf.envs.keys import OBSERVATION_KEY, STATE_KEY
 from torchrl_mbmf.envs.transforms.observation import StateToObservation
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 
 #: How an ensemble steps a batch: ``"cycle"``, element ``i`` of the last batch dim in member
 #: ``i mod K``; ``"mean"``, the members' mean.
@@ -129,10 +128,11 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
                 f"member_assignment must be one of {MEMBER_ASSIGNMENTS}, got {member_assignment!r}"
             )
         members = member_assignment is not None or disagreement_key is not None
-        if members and not isinstance(world_model, EnsembleDeltaDynamicsModel):
+        if members and world_model.ensemble_size < 2:
             raise TypeError(
-                "member_assignment and disagreement_key need an EnsembleDeltaDynamicsModel, got "
-                f"{type(world_model).__name__}"
+                "member_assignment and disagreement_key need an ensemble (ensemble_size >= 2, "
+                f"such as an EnsembleDeltaDynamicsModel), got {type(world_model).__name__} with "
+                f"ensemble_size={world_model.ensemble_size}"
             )
         if device is None:
             device = next(world_model.parameters()).device
@@ -209,7 +209,7 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
     def _members_of(self, batch_size: torch.Size) -> torch.Tensor | None:
         if self.member_assignment != "cycle":
             return None
-        return EnsembleDeltaDynamicsModel.cyclic_member_index(batch_size, self.dynamics.num_members)
+        return self.dynamics.cyclic_member_index(batch_size, self.dynamics.num_members)
 
     def predict(
         self, state: torch.Tensor, action: torch.Tensor

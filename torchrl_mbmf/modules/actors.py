@@ -17,7 +17,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
 from torchrl_mbmf.keys import OBSERVATION_KEY
-from torchrl_mbmf.modules.dynamics import check_hidden_sizes
+from torchrl_mbmf.modules.mlp import check_hidden_sizes
 
 Distribution = Literal["tanh_normal", "normal"]
 

@@ -8,10 +8,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
-from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-
 if TYPE_CHECKING:
-    from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
+    from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 
 
 class EnsembleLinear(nn.Module):
@@ -68,13 +66,54 @@ class EnsembleLinear(nn.Module):
         )
 
 
+def stacked_parameters(layer: nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
+    """A linear layer's weight as members ``[K, in, out]`` and bias ``[K, out]`` (detached).
+
+    An :class:`EnsembleLinear` (3-d weight) gives its own tensors, a :class:`torch.nn.Linear`
+    (the one network, ``K = 1``) a transposed view of its ``[out, in]`` weight.
+
+    Args:
+        layer: an :class:`EnsembleLinear` or a :class:`torch.nn.Linear`.
+
+    Examples:
+        >>> from torch import nn
+        >>> from torchrl_mbmf.modules.ensemble_layers import stacked_parameters
+        >>> w, b = stacked_parameters(nn.Linear(4, 3))
+        >>> w.shape, b.shape
+        (torch.Size([1, 4, 3]), torch.Size([1, 3]))
+    """
+    weight, bias = layer.weight.detach(), layer.bias.detach()
+    if weight.dim() == 3:
+        return weight, bias
+    return weight.t().unsqueeze(0), bias.unsqueeze(0)
+
+
+def linear_layers(net: nn.Sequential) -> tuple[list[nn.Module], list[nn.Module]]:
+    """The linear layers and the activations of a world-model net built by ``build_mlp``.
+
+    Its layers alternate ``linear, activation, ..., linear`` (stacked or not).
+
+    Args:
+        net: the model's ``net``.
+
+    Examples:
+        >>> from torch import nn
+        >>> from torchrl_mbmf.modules.ensemble_layers import linear_layers
+        >>> from torchrl_mbmf.modules.mlp import build_mlp
+        >>> [len(part) for part in linear_layers(build_mlp(4, (8, 8), 2, nn.ReLU))]
+        [3, 2]
+    """
+    layers = list(net)
+    return layers[0::2], layers[1::2]
+
+
 class FusedEnsembleStep:
     """Inference-only, batched evaluation of all ensemble members in real units.
 
-    A snapshot of an :class:`EnsembleDeltaDynamicsModel`: the input standardisation is folded
-    into the members' first layer and the output un-scaling into their last (mean) layer, the
-    weights are detached, and every method runs the members in one batched op per layer.
-    Build a new one after the weights or the scaling change.
+    A snapshot of a :class:`~torchrl_mbmf.modules.DeltaDynamicsModel` (any ``K``): the input
+    standardisation is folded into the members' first layer and the output un-scaling into
+    their last (mean) layer, the weights are detached, and every method runs the members in
+    one batched op per layer. Build a new one after the weights or the scaling change.
 
     * :meth:`members`: every member on a batch shared by all of them (``K`` times the FLOPs of
       one model), needed for the disagreement.
@@ -101,12 +140,12 @@ class FusedEnsembleStep:
     """
 
     @torch.no_grad()
-    def __init__(self, model: EnsembleDeltaDynamicsModel) -> None:
-        linears = [m for m in model.net if isinstance(m, EnsembleLinear)]
-        self.activations = [m for m in model.net if not isinstance(m, EnsembleLinear)]
+    def __init__(self, model: DeltaDynamicsModel) -> None:
+        linears, self.activations = linear_layers(model.net)
+        linears = [stacked_parameters(m) for m in linears]
         d = model.state_dim + 1
-        weights = [m.weight.detach() for m in linears]
-        biases = [m.bias.detach() for m in linears]
+        weights = [w for w, _ in linears]
+        biases = [b for _, b in linears]
         weights[-1], biases[-1] = weights[-1][..., :d], biases[-1][..., :d]
         weights, biases = model.fold_scaling(weights, biases)
         self.weights = [w.contiguous() for w in weights]
@@ -168,8 +207,9 @@ class FusedEnsembleStep:
     def disagreement(self, members: torch.Tensor) -> torch.Tensor:
         """Disagreement ``[*B]`` of :meth:`members`' output ``[K, *B, state_dim + 1]``.
 
-        The same quantity as :meth:`EnsembleDeltaDynamicsModel.disagreement`: the std across
-        members of the real delta divided by ``delta_scale``, averaged over state dims.
+        The same quantity as :meth:`~torchrl_mbmf.modules.DeltaDynamicsModel.disagreement`:
+        the std across members of the real delta divided by ``delta_scale``, averaged over
+        state dims.
 
         Args:
             members: real deltas (and rewards) of every member.
@@ -193,12 +233,12 @@ class FusedEnsembleStep:
 
 
 @torch.no_grad()
-def member_as_single_model(ensemble: EnsembleDeltaDynamicsModel, k: int) -> DeltaDynamicsModel:
+def member_as_single_model(ensemble: DeltaDynamicsModel, k: int) -> DeltaDynamicsModel:
     """Member ``k`` of an ensemble as a standalone single model.
 
     A :class:`~torchrl_mbmf.modules.DeltaDynamicsModel` with the member's weights (its mean
     head) and the shared scaling statistics; it does not share memory with the ensemble
-    (:meth:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel.member`).
+    (:meth:`~torchrl_mbmf.modules.DeltaDynamicsModel.member`).
 
     Args:
         ensemble: the ensemble.
@@ -212,9 +252,12 @@ def member_as_single_model(ensemble: EnsembleDeltaDynamicsModel, k: int) -> Delt
         >>> member_as_single_model(ens, 0).net[0].weight.shape
         torch.Size([8, 4])
     """
+    from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel  # it builds on this module
+
     if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < ensemble.num_members:
         raise ValueError(f"member index must be in [0, {ensemble.num_members - 1}], got {k!r}")
-    act = next((type(m) for m in ensemble.net if not isinstance(m, EnsembleLinear)), nn.ReLU)
+    ours, activations = linear_layers(ensemble.net)
+    act = type(activations[0]) if activations else nn.ReLU
     single = DeltaDynamicsModel(
         ensemble.state_dim,
         ensemble.action_dim,
@@ -223,10 +266,10 @@ def member_as_single_model(ensemble: EnsembleDeltaDynamicsModel, k: int) -> Delt
         action_low=ensemble.action_low,
         action_high=ensemble.action_high,
     ).to(device=ensemble.state_loc.device, dtype=ensemble.state_loc.dtype)
-    ours = [m for m in ensemble.net if isinstance(m, EnsembleLinear)]
-    theirs = [m for m in single.net if isinstance(m, nn.Linear)]
+    theirs = linear_layers(single.net)[0]
     for i, (src, dst) in enumerate(zip(ours, theirs, strict=True)):
-        w, b = src.weight[k], src.bias[k]
+        weight, bias = stacked_parameters(src)
+        w, b = weight[k], bias[k]
         if i == len(ours) - 1:
             w, b = w[:, : ensemble.state_dim + 1], b[: ensemble.state_dim + 1]
         dst.weight.copy_(w.T)
@@ -236,4 +279,10 @@ def member_as_single_model(ensemble: EnsembleDeltaDynamicsModel, k: int) -> Delt
     return single
 
 
-__all__ = ["EnsembleLinear", "FusedEnsembleStep", "member_as_single_model"]
+__all__ = [
+    "EnsembleLinear",
+    "FusedEnsembleStep",
+    "linear_layers",
+    "member_as_single_model",
+    "stacked_parameters",
+]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -10,7 +9,9 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
+from torchrl_mbmf.checks import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.mlp import mlp_forward
 
 
 class DynamicsLoss(LossModule):
@@ -105,15 +106,7 @@ class DynamicsLoss(LossModule):
             (torch.Size([5, 4]), torch.Size([5, 4]))
         """
         wm = self.world_model
-        wm._check(state, action)
-        inputs = torch.cat(
-            [
-                (state - wm.state_loc) / wm.state_scale,
-                (wm.clip_action(action) - wm.action_loc) / wm.action_scale,
-            ],
-            -1,
-        )
-        return inputs, wm.scale_targets(state, next_state, reward)
+        return wm.scaled_inputs(state, action), wm.scale_targets(state, next_state, reward)
 
     def scaled_loss(self, inputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Eq. 17 on pre-scaled data from :meth:`scaled_pairs` (the mean over all outputs).
@@ -138,7 +131,7 @@ class DynamicsLoss(LossModule):
             >>> loss.scaled_loss(torch.zeros(5, 4), torch.zeros(5, 4)).shape
             torch.Size([])
         """
-        return torch.nn.functional.mse_loss(_net_forward(self.world_model.net, inputs), targets)
+        return torch.nn.functional.mse_loss(mlp_forward(self.world_model.net, inputs), targets)
 
     def squared_errors(
         self,
@@ -361,98 +354,9 @@ class MultiStepDynamicsLoss(DynamicsLoss):
         )
 
 
-def _plain_mlp(net: torch.nn.Module) -> list[torch.nn.Module] | None:
-    """The layers of ``net`` if it is a plain MLP that an in-place ReLU may run on, else None.
-
-    That is a hook-free ``Sequential`` of ``Linear``/``ReLU`` layers in which every ReLU
-    follows a ``Linear``, so an in-place ReLU only ever overwrites a fresh linear output
-    (never the caller's input nor a tensor saved for the backward pass).
-    """
-    if type(net) is not torch.nn.Sequential or len(net) == 0:
-        return None
-    layers = list(net)
-    if type(layers[0]) is not torch.nn.Linear:
-        return None
-    for i, module in enumerate((net, *layers)):
-        if type(module) not in (torch.nn.Sequential, torch.nn.Linear, torch.nn.ReLU):
-            return None
-        if type(module) is torch.nn.ReLU and type(layers[i - 2]) is not torch.nn.Linear:
-            return None  # an in-place ReLU must follow a Linear (whose output nothing saves)
-        if module._forward_hooks or module._forward_pre_hooks or module._backward_hooks:
-            return None
-    return layers
-
-
-def _net_forward(net: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """``net(x)``, with in-place ReLUs for a plain MLP (same values and gradients)."""
-    layers = _plain_mlp(net)
-    if layers is None or torch.nn.modules.module._has_any_global_hook():
-        return net(x)
-    for layer in layers:
-        if type(layer) is torch.nn.Linear:
-            x = torch.nn.functional.linear(x, layer.weight, layer.bias)
-        else:
-            x = torch.relu_(x)
-    return x
-
-
-def check_multi_step(multi_step: int, *, key: str = "multi_step") -> int:
-    """Validates a multi-step horizon ``k`` (an integer ``>= 1``; ``1`` turns the term off).
-
-    Args:
-        multi_step: the value.
-
-    Keyword Args:
-        key: the name used in the error message. Defaults to ``"multi_step"``.
-
-    Returns:
-        ``multi_step`` as an ``int``.
-
-    Raises:
-        ValueError: naming ``key`` if the value is not an integer ``>= 1``.
-
-    Examples:
-        >>> from torchrl_mbmf.objectives.dynamics_loss import check_multi_step
-        >>> check_multi_step(5)
-        5
-        >>> try:
-        ...     check_multi_step(0, key="world_model.multi_step")
-        ... except ValueError as err:
-        ...     print(err)
-        world_model.multi_step must be an integer >= 1 (1 = one-step loss only), got 0
-    """
-    if isinstance(multi_step, bool) or not isinstance(multi_step, int) or multi_step < 1:
-        raise ValueError(
-            f"{key} must be an integer >= 1 (1 = one-step loss only), got {multi_step!r}"
-        )
-    return int(multi_step)
-
-
-def check_multi_step_weight(weight: float, *, key: str = "multi_step_weight") -> float:
-    """Validates the weight of the multi-step term (a finite number ``>= 0``).
-
-    Args:
-        weight: the value.
-
-    Keyword Args:
-        key: the name used in the error message. Defaults to ``"multi_step_weight"``.
-
-    Returns:
-        ``weight`` as a ``float``.
-
-    Raises:
-        ValueError: naming ``key`` if the value is negative, not finite or not a number.
-
-    Examples:
-        >>> from torchrl_mbmf.objectives.dynamics_loss import check_multi_step_weight
-        >>> check_multi_step_weight(1)
-        1.0
-    """
-    if (
-        isinstance(weight, bool)
-        or not isinstance(weight, int | float)
-        or not math.isfinite(weight)
-        or weight < 0
-    ):
-        raise ValueError(f"{key} must be a finite number >= 0, got {weight!r}")
-    return float(weight)
+__all__ = [
+    "DynamicsLoss",
+    "MultiStepDynamicsLoss",
+    "check_multi_step",
+    "check_multi_step_weight",
+]

@@ -11,10 +11,9 @@ from typing import Any
 
 from tensordict import TensorDictBase
 
+from torchrl_mbmf.checks import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
-from torchrl_mbmf.objectives.dynamics_loss import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.trainers.fit_data import MultiStepWindows, transition_tensors
 from torchrl_mbmf.trainers.fit_history import (
     EarlyStopping,
@@ -155,9 +154,10 @@ def fit_dynamics(
         >>> history.num_windows > 0, len(history.train_multi_step_loss)
         (True, 1)
     """
-    if isinstance(model, EnsembleDeltaDynamicsModel):
+    if getattr(model, "ensemble_size", 1) > 1:
         raise ValueError(
-            "fit_dynamics trains one network, got an EnsembleDeltaDynamicsModel; fit it with "
+            f"fit_dynamics trains one network, got an ensemble ({type(model).__name__} with "
+            f"ensemble_size={model.ensemble_size}); fit it with "
             "torchrl_mbmf.trainers.ensemble_fit.fit_ensemble (or fit_world_model)"
         )
     return fit_world_model(model, data, **kwargs)

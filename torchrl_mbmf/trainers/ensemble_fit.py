@@ -10,7 +10,8 @@ import torch
 from tensordict import TensorDictBase
 
 from torchrl_mbmf.data.transitions import TransitionDataset
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel, check_ensemble
 from torchrl_mbmf.trainers.fit_history import EnsembleFitHistory
 from torchrl_mbmf.trainers.world_model_fit import fit_world_model
 
@@ -68,11 +69,7 @@ def fit_ensemble(
         >>> history.val_loss[-1] < history.val_loss[0], len(history.member_val_loss)
         (True, 3)
     """
-    if not isinstance(model, EnsembleDeltaDynamicsModel):
-        raise TypeError(
-            f"model must be an EnsembleDeltaDynamicsModel, got {type(model).__name__} "
-            "(fit a single DeltaDynamicsModel with fit_dynamics)"
-        )
+    check_ensemble(model, "model")  # one network (ensemble_size=1): fit_dynamics
     return fit_world_model(model, data, **kwargs)
 
 
@@ -164,8 +161,8 @@ def calibrate_disagreement_threshold(
         >>> round((model.disagreement(s, a) <= cal.threshold).float().mean().item(), 3)
         0.9
     """
-    if not isinstance(model, EnsembleDeltaDynamicsModel):
-        raise TypeError(f"model must be an EnsembleDeltaDynamicsModel, got {type(model).__name__}")
+    if not isinstance(model, DeltaDynamicsModel):
+        raise TypeError(f"model must be a DeltaDynamicsModel, got {type(model).__name__}")
     if not 0.0 < quantile <= 1.0:
         raise ValueError(f"quantile must be in (0, 1], got {quantile}")
     if batch_size < 1:

@@ -257,7 +257,7 @@ class WorldModelPart:
             ensemble_size=ensemble_size,
             probabilistic=probabilistic,
         ).to(device)
-        if isinstance(self.model, EnsembleDeltaDynamicsModel):
+        if self.model.ensemble_size > 1:
             model_env = EnsembleLearnedDynamicsEnv(self.model, env)
         else:
             model_env = LearnedDynamicsEnv(self.model, env)
@@ -321,7 +321,7 @@ class WorldModelPart:
                 self.model, self.dataset, since=int(since), seed=self.seed
             )
         start = time.perf_counter()
-        if isinstance(self.model, EnsembleDeltaDynamicsModel):
+        if self.model.ensemble_size > 1:
             history = fit_ensemble(
                 self.model,
                 self.dataset,
@@ -340,7 +340,7 @@ class WorldModelPart:
         if getattr(history, "multi_step", 1) > 1:
             scalars["model/train_multi_step_loss"] = history.train_multi_step_loss[-1]
             scalars["model/val_multi_step_loss"] = history.best_val_multi_step_loss
-        if isinstance(self.model, EnsembleDeltaDynamicsModel) and self.adaptive_horizon:
+        if self.model.ensemble_size > 1 and self.adaptive_horizon:
             threshold = self._calibrate(history.val_indices)
             progress[self.CALIBRATED] = threshold
             self.planner.disagreement_threshold = threshold

@@ -10,14 +10,10 @@ import torch
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
+from torchrl_mbmf.checks import check_multi_step, check_multi_step_weight
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
-from torchrl_mbmf.objectives.dynamics_loss import (
-    DynamicsLoss,
-    check_multi_step,
-    check_multi_step_weight,
-)
+from torchrl_mbmf.objectives.dynamics_loss import DynamicsLoss
 from torchrl_mbmf.trainers.fit_data import (
     FitSplit,
     MultiStepWindows,
@@ -150,7 +146,7 @@ class _Members:
 
     desc = "ensemble"
 
-    def __init__(self, model: EnsembleDeltaDynamicsModel, split: FitSplit, *, bootstrap: bool):
+    def __init__(self, model: DeltaDynamicsModel, split: FitSplit, *, bootstrap: bool):
         self.model, self.split = model, split
         k, n_train = model.num_members, split.train_x.shape[0]
         if bootstrap:
@@ -269,10 +265,10 @@ def fit_world_model(
     both document the algorithm. Shared: the split (the first ``randperm`` of the fit's
     generator, seeded by ``seed``), the scaler fitted on the training split, the data scaled
     once, the early-stopping loop on a held-out criterion, and the best held-out weights
-    restored at the end. Which objective runs follows the model: an
-    :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel` trains its members with their
-    per-member loss (``bootstrap`` defaults to ``True``), any other model the one-step (and
-    multi-step) loss.
+    restored at the end. Which objective runs follows the model: an ensemble
+    (``ensemble_size >= 2``, e.g. an :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel`)
+    trains its members with their per-member loss (``bootstrap`` defaults to ``True``), the
+    one network (``ensemble_size=1``) the one-step (and multi-step) loss.
 
     Args:
         model: the world model, trained in place.
@@ -324,7 +320,7 @@ def fit_world_model(
     multi_step = check_multi_step(multi_step)
     multi_step_weight = check_multi_step_weight(multi_step_weight)
     early_stopping = check_early_stopping(early_stopping)
-    members = isinstance(model, EnsembleDeltaDynamicsModel)
+    members = getattr(model, "ensemble_size", 1) > 1
     if members and multi_step != 1:
         raise ValueError(f"multi_step={multi_step}: the multi-step term fits one network only")
     if not members and bootstrap:

@@ -113,10 +113,12 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
         disagreement_threshold: float | None = None,
         **kwargs: Any,
     ) -> None:
-        if not isinstance(learned_model(env), EnsembleDeltaDynamicsModel):
+        model = learned_model(env)
+        if model is None or model.ensemble_size < 2:
             model = getattr(env, "dynamics", None)
             raise TypeError(
-                "env must be a LearnedDynamicsEnv on an EnsembleDeltaDynamicsModel, got "
+                "env must be a LearnedDynamicsEnv on an EnsembleDeltaDynamicsModel (an ensemble, "
+                "ensemble_size >= 2), got "
                 f"{type(env).__name__} on {type(model).__name__}"
             )
         if disagreement_threshold is not None:
