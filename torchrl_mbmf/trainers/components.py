@@ -191,6 +191,9 @@ def settings(**kinds: Sequence[str]) -> dict[str, Setting]:
 def choice(*choices: Any) -> Setting:
     """The setting whose value must be one of ``choices``.
 
+    Args:
+        choices: the allowed values.
+
     Examples:
         >>> from torchrl_mbmf.trainers.components import choice
         >>> choice("fused", "stock").check("update", "stock")

@@ -179,9 +179,19 @@ class WorldModelPart:
         guided: the policy-guided planner (else random shooting, ``mpc``). Defaults to ``True``.
 
     Keyword Args:
-        hidden_sizes, ensemble_size, probabilistic: the network (:func:`make_world_model`).
-        lr, batch_size, max_epochs, val_fraction, patience, multi_step, multi_step_weight,
-            early_stopping: the fit (:func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics`).
+        hidden_sizes: the network's hidden layers (:func:`make_world_model`).
+        ensemble_size: the network's members (1: the thesis' single model).
+        probabilistic: Gaussian outputs (ensemble only). Defaults to ``False``.
+        lr: the fit's Adam learning rate (as every fit key, passed to
+            :func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics`).
+        batch_size: the fit's minibatch size.
+        max_epochs: the fit's epoch limit.
+        val_fraction: the fit's held-out fraction (early stopping).
+        patience: epochs without held-out improvement before the fit stops.
+        multi_step: the k of the multi-step model loss (1: off, the thesis). Defaults to ``1``.
+        multi_step_weight: its weight beside the one-step loss. Defaults to ``1.0``.
+        early_stopping: the held-out criterion, ``objective`` or ``one_step``. Defaults to
+            ``"objective"``.
         random_steps: random-policy real steps before the first fit.
         refit_every: policy updates between refits (``mpc``, ``ppo_mpc``).
         save_fits: keep each fit's weights under the run folder. Defaults to ``True``.
