@@ -395,3 +395,26 @@ def test_fine_tuning_is_compared_after_the_switch_and_enters_q1(tmp_path):
     assert (tmp_path / "out" / e2["finetune_figure"]).exists()
     q1 = analysis["verdicts"]["Q1"]
     assert "after fine-tuning" in q1["why"] and q1["finetune_verdict"] == "supported"
+
+
+def test_a_comparison_held_short_by_an_unfinished_run_gives_no_verdict(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        make_run(runs, "ppo", seed, [10.0 * i + seed for i in range(1, 9)])
+        # seed 2 of PPO-MPC stopped at 2,000 of its 8,000 steps; it leads while it runs
+        values = [30.0 * i + seed for i in range(1, 9 if seed < 2 else 3)]
+        make_run(runs, "ppo_mpc", seed, values, total_steps=8000)
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
+    assert analysis["exp2"]["common_step"] == 2000
+    assert analysis["exp2"]["cut_short"] == {"Env__ppo_mpc__default__h10__seed2": 2000}
+    q1 = analysis["verdicts"]["Q1"]
+    assert q1["verdict"] == "partial" and "2,000 of 8,000 real steps" in q1["why"]
+
+
+def test_a_single_seed_is_never_a_verdict(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        make_run(runs, "ppo", seed, [10.0 * i + seed for i in range(1, 9)])
+    make_run(runs, "ppo_mpc", 0, [1.0] * 8)  # far below PPO, but one seed
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
+    assert analysis["verdicts"]["Q1"]["verdict"] == "inconclusive"

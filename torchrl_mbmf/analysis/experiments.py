@@ -58,12 +58,19 @@ def _comparison(
     if reference not in named or len(named) < 2:
         return {"available": sorted(named), "complete": False}
     step = _common_step(named.values())
+    # the step the comparison is meant for: the shortest configured budget, or ``budget``
+    intended = min(r.total_steps for v in named.values() for r in v)
     if budget is not None:
-        step = min(step, budget)
+        intended, step = min(intended, budget), min(step, budget)
     out: dict[str, Any] = {
         "available": sorted(named),
         "complete": True,
         "common_step": step,
+        "intended_step": intended,
+        # unfinished runs that hold the comparison below the step it is meant for
+        "cut_short": {
+            r.name: r.last_step for v in named.values() for r in v if r.last_step < intended
+        },
         "runs": {k: [r.name for r in v] for k, v in named.items()},
         "partial_runs": {
             r.name: r.last_step for v in named.values() for r in v if r.last_step < r.total_steps
@@ -278,7 +285,16 @@ def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, A
             f"at {row['step']} real steps, ratio {row['ratio']:.2f}{_ratio_text(row)} "
             f"({row['seeds_reached']}/{len(row['seeds'])} seeds on their own)"
         )
-    if rel == "higher" and row["ratio"] is not None and row["ratio"] < 1:
+    if cmp.get("cut_short"):
+        names = ", ".join(f"{k} at {v:,}" for k, v in cmp["cut_short"].items())
+        return {
+            "verdict": "partial",
+            "why": f"compared at {step:,} of {cmp['intended_step']:,} real steps, since runs "
+            f"have not finished ({names}): {text}",
+        }
+    if rel == "one seed":
+        verdict = "inconclusive"
+    elif rel == "higher" and row["ratio"] is not None and row["ratio"] < 1:
         verdict = "supported"
     elif rel == "lower" or row["step"] is None:
         verdict = "not supported"
@@ -500,7 +516,9 @@ def analyze_experiments(
     # Verdicts on the research questions (thesis section 1.1).
     q2 = {"verdict": "not run", "why": "needs PPO-MPC and MPC runs"}
     e2 = analysis["exp2"]
-    if e2.get("complete") and "mpc" in e2["intervals"] and e2["intervals"]["mpc"]:
+    if e2.get("complete") and e2.get("cut_short") and "mpc" in e2["intervals"]:
+        q2 = {"verdict": "partial", "why": f"runs have not finished: {e2['cut_short']}"}
+    elif e2.get("complete") and "mpc" in e2["intervals"] and e2["intervals"]["mpc"]:
         rel = compare_intervals(
             _as_interval(e2["intervals"]["ppo_mpc"]), _as_interval(e2["intervals"]["mpc"])
         )
@@ -516,6 +534,8 @@ def analyze_experiments(
     }
     if len(q3_parts) < 2:
         q3_verdict = "not run"
+    elif any(p["verdict"] == "partial" for p in q3_parts.values()):
+        q3_verdict = "partial"
     elif all(p["verdict"] == "supported" for p in q3_parts.values()):
         q3_verdict = "robust"
     else:
