@@ -303,6 +303,14 @@ def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, A
     return {"verdict": verdict, "why": text}
 
 
+def _final_eval(run: Run) -> float | None:
+    """The run's closing evaluation (``summary.json``); the last periodic one while it runs."""
+    closing = (run.summary or {}).get("final_eval_return")
+    if closing is not None:
+        return float(closing)
+    return (final_values([run], "eval/return") or [None])[0]
+
+
 def _ratio_text(row: dict[str, Any]) -> str:
     ci = row.get("ratio_ci")
     if not ci:
@@ -379,7 +387,7 @@ def analyze_experiments(
                 "complete": r.complete,
                 "random_steps": r.random_steps,
                 "last10_mean_return": (final_values([r]) or [None])[0],
-                "final_eval_return": (final_values([r], "eval/return") or [None])[0],
+                "final_eval_return": _final_eval(r),
                 "seconds": r.wall_seconds,
                 "refit_seconds": r.refit_seconds,
                 "commit": r.commit,
