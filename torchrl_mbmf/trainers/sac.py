@@ -93,15 +93,14 @@ class FusedSACUpdate:
     Examples:
         The SAC agent of the training loop builds one (``sac.update=fused``, the default):
 
-        >>> import torch
-        >>> from omegaconf import OmegaConf
+        >>> import torch, yaml
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.agents import make_agent
+        >>> from torchrl_mbmf.trainers.agents import SACAgent
+        >>> keys = yaml.safe_load(open("configs/algo/sac.yaml"))
+        >>> del keys["_target_"]
         >>> env = make_env("Pendulum-v1", seed=0)
-        >>> cfg = OmegaConf.create({"sac": OmegaConf.load("configs/algo/sac.yaml")})
-        >>> agent = make_agent("sac", env, cfg, torch.device("cpu"))
-        >>> with torch.no_grad():
-        ...     batch = env.rollout(8, agent.actor)
+        >>> agent = SACAgent(env, torch.device("cpu"), **keys)
+        >>> batch = env.rollout(8, agent.actor).detach()
         >>> sorted(agent.step(batch))
         ['alpha', 'loss_actor', 'loss_alpha', 'loss_qvalue']
     """
