@@ -418,3 +418,14 @@ def test_a_single_seed_is_never_a_verdict(tmp_path):
     make_run(runs, "ppo_mpc", 0, [1.0] * 8)  # far below PPO, but one seed
     analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
     assert analysis["verdicts"]["Q1"]["verdict"] == "inconclusive"
+
+
+def test_a_verdict_waits_for_every_seed(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        make_run(runs, "ppo", seed, [10.0 * i + seed for i in range(1, 9)])
+    for seed in range(2):  # seed 2 of PPO-MPC has not run
+        make_run(runs, "ppo_mpc", seed, [30.0 * i + seed for i in range(1, 9)])
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
+    q1 = analysis["verdicts"]["Q1"]
+    assert q1["verdict"] == "partial" and q1["why"].startswith("2 of the 3 seeds")

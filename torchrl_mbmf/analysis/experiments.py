@@ -292,6 +292,12 @@ def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, A
             "why": f"compared at {step:,} of {cmp['intended_step']:,} real steps, since runs "
             f"have not finished ({names}): {text}",
         }
+    seeds = min(ci_c["n"], ci_r["n"])
+    if 2 <= seeds < SEEDS:
+        return {
+            "verdict": "partial",
+            "why": f"{seeds} of the {SEEDS} seeds on a side (the others have not run): {text}",
+        }
     if rel == "one seed":
         verdict = "inconclusive"
     elif rel == "higher" and row["ratio"] is not None and row["ratio"] < 1:
@@ -301,6 +307,11 @@ def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, A
     else:
         verdict = "inconclusive"
     return {"verdict": verdict, "why": text}
+
+
+#: Seeds of every configuration of the experiments (0, 1, 2, fixed before running): a verdict
+#: waits for all of them.
+SEEDS = 3
 
 
 def _final_eval(run: Run) -> float | None:
