@@ -429,3 +429,23 @@ def test_a_verdict_waits_for_every_seed(tmp_path):
     analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
     q1 = analysis["verdicts"]["Q1"]
     assert q1["verdict"] == "partial" and q1["why"].startswith("2 of the 3 seeds")
+
+
+def test_random_data_episodes_do_not_reach_the_ppo_maximum(tmp_path):
+    # PPO's best is -250, below a random-policy episode of the PPO-MPC run (-200, logged at step
+    # 500 of its 1000 random-data steps); its own policy first passes -250 at 1000 + 2000.
+    make_run(tmp_path, "ppo", 0, [-300.0, -280.0, -260.0, -250.0])
+    mpc = make_run(tmp_path, "ppo_mpc", 0, [-290.0, -240.0, -230.0], random_steps=1000)
+    csv = mpc / "logs" / "scalars" / "train" / "return_last10_mean.csv"
+    csv.write_text("500,-200.0\n1000,-260.0\n" + csv.read_text())
+    groups = {r.method: [r] for r in load_runs(tmp_path)}
+    every = aggregate_curve(groups["ppo_mpc"], grid=[500, 1500, 2500])
+    np.testing.assert_allclose(every.iqm, [-200.0, -260.0, -290.0])
+    own = aggregate_curve(groups["ppo_mpc"], grid=[500, 1500, 2500], policy_only=True)
+    np.testing.assert_allclose(own.iqm, [np.nan, np.nan, -290.0])
+    for exclude_random, step in ((False, 3000), (True, 2000)):
+        table = ppo_maximum_table(groups, "ppo", exclude_random=exclude_random, points=8)
+        rows = {r["label"]: r for r in table["rows"]}
+        assert table["threshold"] == -250.0
+        assert rows["ppo_mpc"]["step"] == step, (exclude_random, rows["ppo_mpc"])
+        assert rows["ppo_mpc"]["per_seed_steps"] == [step]

@@ -315,6 +315,15 @@ def _on_grid(steps: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndar
     return out
 
 
+def _policy_points(run: Run, name: str, policy_only: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``run.scalar(name)``, without the random-data phase's values when ``policy_only``."""
+    steps, values = run.scalar(name)
+    if policy_only and run.random_steps > 0:
+        keep = steps > run.random_steps
+        steps, values = steps[keep], values[keep]
+    return steps, values
+
+
 def aggregate_curve(
     runs: Sequence[Run],
     name: str = RETURN_CURVE,
@@ -322,6 +331,7 @@ def aggregate_curve(
     grid: np.ndarray | None = None,
     points: int = 100,
     exclude_random: bool = False,
+    policy_only: bool = False,
     n_resamples: int = 1000,
 ) -> Curve:
     r"""Aggregates one scalar of several seeds on a common grid of real steps.
@@ -339,6 +349,10 @@ def aggregate_curve(
         points: grid size when ``grid`` is not given. Defaults to ``100``.
         exclude_random: subtract each run's random-data steps from its step axis (the thesis'
             "without random steps" count). Defaults to ``False``: every real step counts.
+        policy_only: leave out the values a run logged during its random-data phase (at real
+            steps up to its ``random_steps``): those episodes ran the random policy, not the
+            method's. The curve of such a run starts at its first episode of its own policy.
+            Defaults to ``False``: every logged value counts.
         n_resamples: bootstrap resamples per grid step. Defaults to ``1000``.
 
     Returns:
@@ -361,7 +375,7 @@ def aggregate_curve(
         raise ValueError("aggregate_curve needs at least one run")
     shifted = []
     for run in runs:
-        steps, values = run.scalar(name)
+        steps, values = _policy_points(run, name, policy_only)
         offset = run.random_steps if exclude_random else 0
         shifted.append((steps - offset, values, offset))
     if grid is None:
@@ -377,7 +391,7 @@ def aggregate_curve(
                 ("train/return_last10_min", band_lo),
                 ("train/return_last10_max", band_hi),
             ):
-                s, v = run.scalar(key)
+                s, v = _policy_points(run, key, policy_only)
                 if s.size:
                     out[i] = _on_grid(s - off, v, grid)
     center, low, high = (np.full(grid.shape, np.nan) for _ in range(3))
@@ -565,7 +579,10 @@ def ppo_maximum_table(
     within ``budget`` real steps; for every configuration the table gives the first real step at
     which its own aggregated curve reaches that threshold, and the ratio to the reference's step
     (below 1: fewer real steps than the reference). Per-seed first steps are given too, each
-    seed's own curve against the same threshold.
+    seed's own curve against the same threshold. What a run logged during its random-data phase
+    is left out (``aggregate_curve(..., policy_only=True)``): those episodes ran the random
+    policy, so a threshold below the random policy's returns is not "reached" by collecting
+    random data; the steps of that phase still count unless ``exclude_random``.
 
     Args:
         groups: ``{label: runs}``, one entry per configuration; must hold ``reference``.
@@ -608,7 +625,9 @@ def ppo_maximum_table(
         end = max(r.last_step for runs in groups.values() for r in runs)
     grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
     curves = {
-        label: aggregate_curve(runs, grid=grid, exclude_random=exclude_random, n_resamples=200)
+        label: aggregate_curve(
+            runs, grid=grid, exclude_random=exclude_random, policy_only=True, n_resamples=200
+        )
         for label, runs in groups.items()
     }
     ref = curves[reference].iqm
