@@ -170,3 +170,37 @@ def test_replay_checkpoint_never_unpickles(tmp_path, plant_pickle):
     ReplayCheckpointAdapter().save(source, tmp_path / "ok", args=(), kwargs={})
     with pytest.raises(ValueError, match="unexpected keys"):
         ReplayCheckpointAdapter(keys=["action"]).load(target, tmp_path / "ok")
+
+
+def test_a_tensor_that_could_not_be_loaded_is_refused_before_writing(tmp_path):
+    from torchrl_mbmf.trainers.checkpointing import TensorStateAdapter
+
+    class Holder:
+        def state_dict(self):
+            return {"fine": torch.zeros(2), "nested": [torch.zeros(2, dtype=torch.complex64)]}
+
+    target = tmp_path / "component"
+    with pytest.raises(TypeError, match=r"Holder\['nested'\]\[0\]: a torch\.complex64 tensor"):
+        TensorStateAdapter().save(Holder(), target, args=(), kwargs={})
+    assert not target.exists()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.int64, torch.bool])
+def test_every_allowed_dtype_round_trips(tmp_path, dtype):
+    from torchrl_mbmf.trainers.checkpointing import TensorStateAdapter
+
+    class Holder:
+        def __init__(self, value):
+            self.value = value
+
+        def state_dict(self):
+            return {"value": self.value}
+
+        def load_state_dict(self, state):
+            self.value = state["value"]
+
+    source = Holder(torch.arange(6).reshape(2, 3).to(dtype))
+    target = Holder(None)
+    TensorStateAdapter().save(source, tmp_path, args=(), kwargs={})
+    TensorStateAdapter().load(target, tmp_path)
+    assert target.value.dtype == dtype and torch.equal(target.value, source.value)

@@ -21,28 +21,13 @@ import torch
 from tensordict import TensorDict
 from tensordict.utils import NestedKey
 
-__all__ = ["UnsafeFolderError", "load_tensor_folder"]
+__all__ = ["UnsafeFolderError", "is_stored_shape", "load_tensor_folder", "stored_dtype"]
 
 _META = "meta.json"
 _TD_TYPE = "<class 'tensordict._td.TensorDict'>"
 _TENSOR_FIELDS = {"device", "shape", "dtype", "is_nested"}
 _RESERVED = {"shape", "device", "_type"}
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
-_DTYPES = {
-    f"torch.{name}": getattr(torch, name)
-    for name in (
-        "float16",
-        "bfloat16",
-        "float32",
-        "float64",
-        "uint8",
-        "int8",
-        "int16",
-        "int32",
-        "int64",
-        "bool",
-    )
-}
 
 
 class UnsafeFolderError(ValueError):
@@ -67,22 +52,73 @@ def _read_meta(folder: Path) -> dict:
             f"{meta_file} describes a {found!r}, expected a plain TensorDict ({_TD_TYPE!r})"
         )
     shape = meta.get("shape")
-    if not isinstance(shape, list) or not all(
-        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape
-    ):
+    if not is_stored_shape(shape):
         raise UnsafeFolderError(f"{meta_file} has an invalid batch shape {shape!r}")
     return meta
 
 
+#: The dtypes a stored tensor may have: the plain numeric ones and ``bool``.
+_STORED_DTYPES = {
+    name: getattr(torch, name)
+    for name in (
+        "float16",
+        "bfloat16",
+        "float32",
+        "float64",
+        "uint8",
+        "int8",
+        "int16",
+        "int32",
+        "int64",
+        "bool",
+    )
+}
+
+
+def stored_dtype(name: object, *, prefix: str = "") -> torch.dtype | None:
+    """The plain dtype that a stored file names as ``prefix + "<dtype>"``, else ``None``.
+
+    Only the numeric dtypes and ``bool`` are allowed (nothing that needs code to rebuild).
+
+    Args:
+        name: the name read from the file (any JSON value).
+
+    Keyword Args:
+        prefix: the prefix the writer puts before the dtype's name (``"torch."`` in a
+            ``TensorDict.memmap`` folder). Defaults to ``""``.
+
+    Examples:
+        >>> from torchrl_mbmf.data.memmap import stored_dtype
+        >>> stored_dtype("torch.float32", prefix="torch."), stored_dtype("float32", prefix="torch.")
+        (torch.float32, None)
+        >>> stored_dtype("complex64") is None
+        True
+    """
+    if not isinstance(name, str) or not name.startswith(prefix):
+        return None
+    return _STORED_DTYPES.get(name[len(prefix) :])
+
+
+def is_stored_shape(value: object) -> bool:
+    """Whether a value read from a stored file is a shape: a list of integers ``>= 0``.
+
+    Args:
+        value: the value (any JSON value).
+
+    Examples:
+        >>> from torchrl_mbmf.data.memmap import is_stored_shape
+        >>> is_stored_shape([2, 3]), is_stored_shape([2, -1]), is_stored_shape([True])
+        (True, False, False)
+    """
+    return isinstance(value, list) and all(
+        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in value
+    )
+
+
 def _read_tensor(file: Path, spec: dict, meta_file: Path, name: str) -> torch.Tensor:
-    dtype = _DTYPES.get(spec.get("dtype"))
+    dtype = stored_dtype(spec.get("dtype"), prefix="torch.")
     shape = spec.get("shape")
-    if (
-        dtype is None
-        or spec.get("is_nested") is not False
-        or not isinstance(shape, list)
-        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
-    ):
+    if dtype is None or spec.get("is_nested") is not False or not is_stored_shape(shape):
         raise UnsafeFolderError(
             f"{meta_file}: entry {name!r} is not a plain dense tensor "
             f"(dtype {spec.get('dtype')!r}, shape {shape!r}); refusing to load it"

@@ -38,7 +38,12 @@ from torchrl.checkpoint import (
     CheckpointRotation,
 )
 
-from torchrl_mbmf.data.memmap import UnsafeFolderError, load_tensor_folder
+from torchrl_mbmf.data.memmap import (
+    UnsafeFolderError,
+    is_stored_shape,
+    load_tensor_folder,
+    stored_dtype,
+)
 
 __all__ = [
     "INTEGRITY_FILE",
@@ -375,11 +380,17 @@ def latest_intact_checkpoint(rotation: CheckpointRotation) -> Path | None:
 # ------------------------------------------------------------- state dicts
 def _encode(value: Any, tensors: list[torch.Tensor], where: str) -> Any:
     if isinstance(value, torch.Tensor):
+        dtype = str(value.dtype).removeprefix("torch.")
+        if stored_dtype(dtype) is None:
+            raise TypeError(
+                f"{where}: a {value.dtype} tensor cannot be checkpointed by TensorStateAdapter "
+                "(plain numeric and bool dtypes only)"
+            )
         tensors.append(value.detach())
         return {
             "kind": "tensor",
             "index": len(tensors) - 1,
-            "dtype": str(value.dtype).removeprefix("torch."),
+            "dtype": dtype,
             "shape": list(value.shape),
             "device": str(value.device),
         }
@@ -412,23 +423,6 @@ def _encode(value: Any, tensors: list[torch.Tensor], where: str) -> Any:
     )
 
 
-_DTYPES = {
-    name: getattr(torch, name)
-    for name in (
-        "float16",
-        "bfloat16",
-        "float32",
-        "float64",
-        "uint8",
-        "int8",
-        "int16",
-        "int32",
-        "int64",
-        "bool",
-    )
-}
-
-
 class _Decoder:
     def __init__(self, folder: Path, schema_file: Path) -> None:
         self.folder = folder
@@ -439,15 +433,14 @@ class _Decoder:
         return ValueError(f"{self.schema_file}: {what}; refusing to load it")
 
     def tensor(self, spec: Mapping[str, Any]) -> torch.Tensor:
-        dtype = _DTYPES.get(spec.get("dtype"))
+        dtype = stored_dtype(spec.get("dtype"))
         shape, index = spec.get("shape"), spec.get("index")
         if (
             dtype is None
             or not isinstance(index, int)
             or isinstance(index, bool)
             or index < 0
-            or not isinstance(shape, list)
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
+            or not is_stored_shape(shape)
         ):
             raise self.fail(f"invalid tensor entry {dict(spec)!r}")
         name = f"t{index:05d}.bin"
@@ -543,10 +536,10 @@ class TensorStateAdapter(CheckpointAdapter):
             args: positional arguments of ``state_dict``.
             kwargs: keyword arguments of ``state_dict``.
         """
-        path.mkdir(parents=True, exist_ok=True)
         state = component.state_dict(*args, **kwargs)
         tensors: list[torch.Tensor] = []
-        schema = _encode(state, tensors, type(component).__name__)
+        schema = _encode(state, tensors, type(component).__name__)  # refuses before writing
+        path.mkdir(parents=True, exist_ok=True)
         for i, tensor in enumerate(tensors):
             flat = tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8)
             (path / f"t{i:05d}.bin").write_bytes(flat.numpy().tobytes())
