@@ -73,8 +73,9 @@ def make_sb3_model(
     PPO: ``n_steps = frames_per_batch``, ``batch_size = minibatch_size``, ``n_epochs = epochs``,
     the clip range, GAE lambda, entropy and value coefficients, gradient-norm clip, normalised
     advantages, separate ``hidden_sizes`` ReLU networks for policy and value and the initial
-    log-std; SB3 samples a Gaussian and clips it to the bounds (ours: a TanhNormal), and, like
-    ours, normalises no observation. SAC: ``learning_starts = init_random_frames`` (uniform
+    log-std; SB3 samples a Gaussian and clips it to the bounds (ours, by default: the thesis'
+    Gaussian with a tanh-squashed mean, ``ppo.distribution=normal``), and, like ours,
+    normalises no observation. SAC: ``learning_starts = init_random_frames`` (uniform
     random actions until then, as ours), ``utd_ratio`` gradient steps per env step, automatic
     entropy tuning from ``alpha_init``, ``hidden_sizes`` ReLU networks.
 
