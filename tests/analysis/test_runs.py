@@ -89,21 +89,68 @@ def test_interrupted_seed_stops_contributing_after_its_last_step(tmp_path):
 
 
 def test_ppo_maximum_table_with_and_without_random_steps(tmp_path):
-    # PPO peaks at 40 at step 4000; PPO-MPC (500 random steps first) passes 40 at 500 + 2000.
+    # PPO peaks at 40 at step 4000. PPO-MPC (500 random steps, then 200-step episodes) passes
+    # 40 with its 11th episode of its own policy, at 500 + 11 * 200 = 2700 real steps.
     make_run(tmp_path, "ppo", 0, [10.0, 20.0, 30.0, 40.0])
-    make_run(tmp_path, "ppo_mpc", 0, [20.0, 45.0, 50.0], random_steps=500)
+    make_run(tmp_path, "ppo_mpc", 0, [20.0] * 10 + [45.0, 50.0], step=200, random_steps=500)
     runs = load_runs(tmp_path)
     groups = {r.method: [r] for r in runs}
-    table = ppo_maximum_table(groups, "ppo", budget=4000, points=8)
+    table = ppo_maximum_table(groups, "ppo", budget=4000, points=40)
     rows = {r["label"]: r for r in table["rows"]}
-    assert table["threshold"] == 40.0
+    assert table["threshold"] == 40.0 and table["grid_spacing"] == 100.0
     assert rows["ppo"]["step"] == 4000
-    assert rows["ppo_mpc"]["step"] == 2500 and rows["ppo_mpc"]["ratio"] == 2500 / 4000
-    table = ppo_maximum_table(groups, "ppo", budget=4000, exclude_random=True, points=8)
+    assert rows["ppo_mpc"]["step"] == 2700 and rows["ppo_mpc"]["ratio"] == 2700 / 4000
+    table = ppo_maximum_table(groups, "ppo", budget=4000, exclude_random=True, points=40)
     rows = {r["label"]: r for r in table["rows"]}
-    assert rows["ppo_mpc"]["step"] == 2000 and rows["ppo_mpc"]["ratio"] == 0.5
+    assert rows["ppo_mpc"]["step"] == 2200 and rows["ppo_mpc"]["ratio"] == 2200 / 4000
     with pytest.raises(KeyError, match="sac"):
         ppo_maximum_table(groups, "sac")
+
+
+def test_ppo_maximum_table_reads_every_run_up_to_the_budget_and_needs_every_seed(tmp_path):
+    # Without random steps, PPO-MPC's shifted curve would run 1000 steps past the budget; it
+    # reaches PPO's best (30) only there, so within the budget it never does.
+    make_run(tmp_path, "ppo", 0, [10.0, 20.0, 30.0])
+    for seed in (0, 1):
+        make_run(tmp_path, "ppo_mpc", seed, [0.0] * 11 + [50.0], step=250, random_steps=1000)
+    groups = {}
+    for r in load_runs(tmp_path):
+        groups.setdefault(r.method, []).append(r)
+    table = ppo_maximum_table(groups, "ppo", budget=3000, exclude_random=True, points=30)
+    rows = {r["label"]: r for r in table["rows"]}
+    assert rows["ppo_mpc"]["step"] is None
+    # one of two seeds stops early: the aggregate ends there instead of becoming that seed alone
+    short = load_runs(tmp_path)
+    curve = aggregate_curve(
+        [r for r in short if r.method == "ppo_mpc"], grid=[3500, 4000], min_seeds=2
+    )
+    np.testing.assert_allclose(curve.iqm, [0.0, 50.0])
+    (tmp_path / "Env__ppo_mpc__default__h10__seed1/logs/scalars/train").joinpath(
+        "return_last10_mean.csv"
+    ).write_text("1250,0.0\n3500,0.0\n")
+    curve = aggregate_curve(
+        [r for r in load_runs(tmp_path) if r.method == "ppo_mpc"], grid=[3500, 4000], min_seeds=2
+    )
+    np.testing.assert_allclose(curve.iqm, [0.0, np.nan])
+    with pytest.raises(ValueError, match="min_seeds must be an integer >= 1, got 0"):
+        aggregate_curve(short, grid=[1000], min_seeds=0)
+
+
+def test_ppo_maximum_table_calibrates_the_ratio_against_the_reference_itself(tmp_path):
+    for seed, noise in enumerate([0.0, 3.0, -2.0]):
+        make_run(tmp_path, "ppo", seed, [10.0, 20.0 + noise, 25.0 - noise, 30.0 + noise])
+        make_run(tmp_path, "ppo_mpc", seed, [0.0] * 10 + [-280.0], step=100, random_steps=50)
+        csv = tmp_path / f"Env__ppo_mpc__default__h10__seed{seed}/logs/scalars/train"
+        rows = (csv / "episode_return.csv").read_text()
+        (csv / "episode_return.csv").write_text("25,-250.0\n50,-300.0\n" + rows)
+    groups = {}
+    for r in load_runs(tmp_path):
+        groups.setdefault(r.method, []).append(r)
+    table = ppo_maximum_table(groups, "ppo", points=8)
+    self_ci = table["reference_self"]
+    assert set(self_ci) == {"low", "high", "reached"} and 0 < self_ci["reached"] <= 1
+    assert self_ci["low"] <= 1.0
+    assert table["random_policy_return"] == pytest.approx(-275.0)
 
 
 @pytest.mark.parametrize("better", [True, False])
@@ -383,6 +430,9 @@ def test_fine_tuning_is_compared_after_the_switch_and_enters_q1(tmp_path):
         config = yaml.safe_load((path / "config.yaml").read_text())
         config["planning_updates"] = 2
         (path / "config.yaml").write_text(yaml.safe_dump(config))
+        # 100-step episodes: the last-10 window holds only its own policy's from 2000 on
+        episodes = "".join(f"{s},0.0\n" for s in range(1100, 8001, 100))
+        (path / "logs/scalars/train/episode_return.csv").write_text(episodes)
     analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
     e2 = analysis["exp2"]
     assert e2["common_step"] == 3000  # the planning phase ends at the switch
@@ -432,20 +482,65 @@ def test_a_verdict_waits_for_every_seed(tmp_path):
 
 
 def test_random_data_episodes_do_not_reach_the_ppo_maximum(tmp_path):
-    # PPO's best is -250, below a random-policy episode of the PPO-MPC run (-200, logged at step
-    # 500 of its 1000 random-data steps); its own policy first passes -250 at 1000 + 2000.
+    # PPO's best is -250, below a random-policy episode's last-10 mean of the PPO-MPC run (-200,
+    # logged at step 500 of its 1000 random-data steps); its window holds only its own episodes
+    # from its 10th policy episode (1000 + 10 * 100) on, and passes -250 at 1000 + 11 * 100.
     make_run(tmp_path, "ppo", 0, [-300.0, -280.0, -260.0, -250.0])
-    mpc = make_run(tmp_path, "ppo_mpc", 0, [-290.0, -240.0, -230.0], random_steps=1000)
-    csv = mpc / "logs" / "scalars" / "train" / "return_last10_mean.csv"
-    csv.write_text("500,-200.0\n1000,-260.0\n" + csv.read_text())
+    mpc = make_run(tmp_path, "ppo_mpc", 0, [-200.0] * 10 + [-240.0], step=100, random_steps=1000)
+    train = mpc / "logs" / "scalars" / "train"
+    for name in ("return_last10_mean.csv", "episode_return.csv"):
+        (train / name).write_text("500,-200.0\n1000,-260.0\n" + (train / name).read_text())
     groups = {r.method: [r] for r in load_runs(tmp_path)}
-    every = aggregate_curve(groups["ppo_mpc"], grid=[500, 1500, 2500])
-    np.testing.assert_allclose(every.iqm, [-200.0, -260.0, -290.0])
-    own = aggregate_curve(groups["ppo_mpc"], grid=[500, 1500, 2500], policy_only=True)
-    np.testing.assert_allclose(own.iqm, [np.nan, np.nan, -290.0])
-    for exclude_random, step in ((False, 3000), (True, 2000)):
-        table = ppo_maximum_table(groups, "ppo", exclude_random=exclude_random, points=8)
+    every = aggregate_curve(groups["ppo_mpc"], grid=[500, 1500, 2000, 2100])
+    np.testing.assert_allclose(every.iqm, [-200.0, -200.0, -200.0, -240.0])
+    own = aggregate_curve(groups["ppo_mpc"], grid=[500, 1500, 2000, 2100], policy_only=True)
+    np.testing.assert_allclose(own.iqm, [np.nan, np.nan, -200.0, -240.0])
+    for exclude_random, step in ((False, 2000), (True, 1000)):
+        table = ppo_maximum_table(
+            groups, "ppo", budget=4000, exclude_random=exclude_random, points=40
+        )
         rows = {r["label"]: r for r in table["rows"]}
         assert table["threshold"] == -250.0
         assert rows["ppo_mpc"]["step"] == step, (exclude_random, rows["ppo_mpc"])
         assert rows["ppo_mpc"]["per_seed_steps"] == [step]
+        assert table["random_policy_return"] == pytest.approx(-230.0)
+
+
+@pytest.mark.parametrize(
+    ("head_pen_better", "shin_pen_better", "expected"),
+    [(False, True, "reward-sensitive"), (True, True, "robust")],
+)
+def test_q3_names_how_the_advantage_depends_on_the_reward(
+    tmp_path, head_pen_better, shin_pen_better, expected
+):
+    runs = tmp_path / "runs"
+    good, bad = np.linspace(0, 100, 8), np.linspace(0, 40, 8)
+    better = {"default": True, "head_pen": head_pen_better, "shin_pen": shin_pen_better}
+    for reward, wins in better.items():
+        for seed in range(3):
+            make_run(runs, "ppo", seed, list(bad + seed), reward=reward)
+            mpc = good if wins else bad / 4
+            make_run(runs, "ppo_mpc", seed, list(mpc + seed), reward=reward)
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
+    q3 = analysis["verdicts"]["Q3"]
+    words = {k: p["verdict"] for k, p in q3["per_reward"].items()}
+    assert words == {k: "supported" if v else "not supported" for k, v in better.items()}
+    assert q3["verdict"] == expected
+
+
+def test_q3_without_an_advantage_anywhere_is_not_the_thesis_answer(tmp_path):
+    runs = tmp_path / "runs"
+    bad = np.linspace(0, 40, 8)
+    for reward in ("default", "head_pen", "shin_pen"):
+        for seed in range(3):
+            make_run(runs, "ppo", seed, list(bad + seed), reward=reward)
+            make_run(runs, "ppo_mpc", seed, list(bad / 4 + seed), reward=reward)
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
+    assert analysis["verdicts"]["Q3"]["verdict"] == "no advantage"
+
+
+def test_a_run_read_up_to_a_step_holds_its_last_value_until_then(tmp_path):
+    # logged every 2048 steps: read up to 5000, the value of 4096 holds through 5000
+    make_run(tmp_path, "ppo", 0, [1.0, 2.0, 3.0], step=2048)
+    curve = aggregate_curve(load_runs(tmp_path), grid=[4096, 5000, 6144], until=5000)
+    np.testing.assert_allclose(curve.iqm, [2.0, 2.0, np.nan])

@@ -296,17 +296,36 @@ def _verdict(cmp: dict[str, Any], candidate: str, reference: str) -> dict[str, A
     if 2 <= seeds < SEEDS:
         return {
             "verdict": "partial",
-            "why": f"{seeds} of the {SEEDS} seeds on a side (the others have not run): {text}",
+            "why": f"{seeds} of the {SEEDS} seeds on a side (the others have not reached "
+            f"this step): {text}",
         }
-    if rel == "one seed":
-        verdict = "inconclusive"
-    elif rel == "higher" and row["ratio"] is not None and row["ratio"] < 1:
-        verdict = "supported"
-    elif rel == "lower" or row["step"] is None:
-        verdict = "not supported"
-    else:
-        verdict = "inconclusive"
+    table = cmp["tables"]["all_steps"]
+    random_level = table.get("random_policy_return")
+    if random_level is not None and table["threshold"] <= random_level:
+        text += (
+            f"; {best} is no better than the random policy's return ({random_level:.0f}), "
+            "so reaching it says nothing"
+        )
+    verdict = _verdict_word(rel, row, table)
     return {"verdict": verdict, "why": text}
+
+
+def _verdict_word(rel: str, row: dict[str, Any], table: dict[str, Any]) -> str:
+    """The verdict of a comparison: ``supported``, ``not supported`` or ``inconclusive``.
+
+    ``supported`` needs both: higher at the common step (the intervals apart) and the whole
+    bootstrap interval of the steps ratio below 1, against a threshold above the random
+    policy's return; ``not supported`` needs the candidate lower; anything else is
+    inconclusive.
+    """
+    if rel == "lower":
+        return "not supported"
+    ci = row.get("ratio_ci") or {}
+    random_level = table.get("random_policy_return")
+    meaningful = random_level is None or table["threshold"] > random_level
+    if rel == "higher" and meaningful and ci.get("high", float("inf")) < 1:
+        return "supported"
+    return "inconclusive"
 
 
 #: Seeds of every configuration of the experiments (0, 1, 2, fixed before running): a verdict
@@ -535,8 +554,17 @@ def analyze_experiments(
     # Verdicts on the research questions (thesis section 1.1).
     q2 = {"verdict": "not run", "why": "needs PPO-MPC and MPC runs"}
     e2 = analysis["exp2"]
+    mpc_seeds = min(
+        (iv["n"] for k, iv in e2.get("intervals", {}).items() if k in ("mpc", "ppo_mpc") and iv),
+        default=0,
+    )
     if e2.get("complete") and e2.get("cut_short") and "mpc" in e2["intervals"]:
         q2 = {"verdict": "partial", "why": f"runs have not finished: {e2['cut_short']}"}
+    elif e2.get("complete") and e2["intervals"].get("mpc") and mpc_seeds < SEEDS:
+        q2 = {
+            "verdict": "partial" if mpc_seeds >= 2 else "inconclusive",
+            "why": f"{mpc_seeds} of the {SEEDS} seeds on a side at {e2['common_step']:,} steps",
+        }
     elif e2.get("complete") and "mpc" in e2["intervals"] and e2["intervals"]["mpc"]:
         rel = compare_intervals(
             _as_interval(e2["intervals"]["ppo_mpc"]), _as_interval(e2["intervals"]["mpc"])
@@ -551,14 +579,19 @@ def analyze_experiments(
     q3_parts = {
         rw: _verdict(exp3[rw], "ppo_mpc", "ppo") for rw in REWARDS if exp3[rw].get("complete")
     }
+    words = [p["verdict"] for p in q3_parts.values()]
     if len(q3_parts) < 2:
-        q3_verdict = "not run"
-    elif any(p["verdict"] == "partial" for p in q3_parts.values()):
+        q3_verdict = "not run"  # no penalised reward compared yet
+    elif len(q3_parts) < len(REWARDS) or "partial" in words:
         q3_verdict = "partial"
-    elif all(p["verdict"] == "supported" for p in q3_parts.values()):
+    elif all(w == "supported" for w in words):
         q3_verdict = "robust"
-    else:
+    elif "supported" in words and "not supported" in words:
         q3_verdict = "reward-sensitive"
+    elif "supported" not in words and "not supported" in words:
+        q3_verdict = "no advantage"
+    else:
+        q3_verdict = "inconclusive"
     q3 = {
         "verdict": q3_verdict,
         "per_reward": q3_parts,

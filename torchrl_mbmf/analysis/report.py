@@ -48,6 +48,16 @@ def _ci(d: Mapping[str, Any] | None, digits: int = 0) -> str:
     return f"{d['iqm']:,.{digits}f} [{d['low']:,.{digits}f}, {d['high']:,.{digits}f}] (n={d['n']})"
 
 
+def _per_seed_or_ci(d: Mapping[str, Any] | None, digits: int = 0) -> str:
+    """The interval with three or more seeds, else each seed's value.
+
+    A mean of two values can stand for neither (one diverged model and one good one).
+    """
+    if not d or d["n"] >= 3 or not d.get("values"):
+        return _ci(d, digits)
+    return ", ".join(f"{v:,.{digits}f}" for v in d["values"]) + f" (n={d['n']}, each seed)"
+
+
 def _ratio_ci(ci: Mapping[str, float]) -> str:
     """``[low, high]``; an infinite bound is a share of resamples that never reached it."""
 
@@ -103,12 +113,39 @@ def _comparison_md(cmp: Mapping[str, Any], rel: str, caption: str, thesis: str |
                 f"{r['seeds_reached']}/{len(r['seeds'])} |"
             )
         out.append("")
+        out += _table_caveats(t)
     if cmp.get("partial_runs"):
         parts = ", ".join(f"{k} stopped at {v:,}" for k, v in cmp["partial_runs"].items())
         out += [f"Partial runs (interrupted before their budget): {parts}.", ""]
     if thesis:
         out += [f"Thesis: {thesis}", ""]
     return out
+
+
+def _table_caveats(t: Mapping[str, Any]) -> list[str]:
+    """What a steps-to-the-maximum table cannot say, from its own numbers."""
+    notes = []
+    if t.get("reference_self"):
+        notes.append(
+            f"The threshold is the maximum of the {t['reference']} curve itself, which it "
+            "reaches by construction: the ratio is biased upwards. Calibration: "
+            f"{t['reference']} against itself (both sides resampled from its seeds) gives "
+            f"{_ratio_ci(t['reference_self'])}; a ratio interval like that is what two "
+            "identical methods show."
+        )
+    if t.get("grid_spacing"):
+        notes.append(
+            f"First steps are read on a grid {t['grid_spacing']:,.0f} real steps apart; "
+            "curves count a run once its last-10 window holds only its own policy's episodes, "
+            "and only where every seed has a value."
+        )
+    random_level = t.get("random_policy_return")
+    if random_level is not None and t["threshold"] <= random_level:
+        notes.append(
+            f"**The threshold ({t['threshold']:,.0f}) is no better than the random policy's "
+            f"return ({random_level:,.0f}, the random-data episodes): reaching it says nothing.**"
+        )
+    return [" ".join(notes), ""] if notes else []
 
 
 def _ablation_md(ablation: Mapping[str, Any], rel: str, caption: str) -> list[str]:
@@ -173,7 +210,8 @@ def _refits_md(refits: Mapping[str, Any]) -> list[str]:
             "(tables 8 and 9): on the real transitions the policy collected after the fit "
             "(`policy`, scored by the run before its next refit) and on fresh random-policy "
             "episodes (`random`, `recipes/evaluate_fits.py`); IQM over seeds with the 95% "
-            "bootstrap interval; the thesis' numbers are for a model fitted on random data:",
+            "bootstrap interval (with fewer than three seeds, each seed's value); the thesis' "
+            "numbers are for a model fitted on random data:",
             "",
             "| fitted on (transitions) | held-out data | h | x-position MSE (m^2) | thesis "
             "table 8 | reward MSE | thesis table 9 |",
@@ -182,8 +220,8 @@ def _refits_md(refits: Mapping[str, Any]) -> list[str]:
         for row in table["rows"]:
             out.append(
                 f"| {row['transitions']:,} | {row['source']} | {row['horizon']} | "
-                f"{_ci(row['x_mse'], 4)} | {_fmt(row['thesis_x_mse'], 4)} | "
-                f"{_ci(row['reward_mse'], 4)} | {_fmt(row['thesis_reward_mse'], 4)} |"
+                f"{_per_seed_or_ci(row['x_mse'], 4)} | {_fmt(row['thesis_x_mse'], 4)} | "
+                f"{_per_seed_or_ci(row['reward_mse'], 4)} | {_fmt(row['thesis_reward_mse'], 4)} |"
             )
         out.append("")
     return out
@@ -270,17 +308,18 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
     gait = analysis.get("gait") or {}
     if gait.get("metrics"):
         out += [
-            "Gait of each reward's seed-0 PPO-MPC policy, 60 deterministic steps (equation 20, "
-            "figures 14-16):",
+            "Gait of one PPO-MPC policy per reward (the run named), 60 deterministic steps "
+            "(equation 20, figures 14-16):",
             "",
-            "| reward | policy at real step | sum of mean abs joint power (W) "
+            "| reward | policy (run, real step) | sum of mean abs joint power (W) "
             "| torso height std (m) | distance in 60 steps (m) |",
             "|---|---|---|---|---|",
         ]
         for label, m in gait["metrics"].items():
             p = gait["policies"][label]
+            run = f"{p['run']}, " if p.get("run") else ""
             out.append(
-                f"| {label} | {p['real_steps']:,} | {m['total_abs_power_W']:.2f} | "
+                f"| {label} | {run}{p['real_steps']:,} | {m['total_abs_power_W']:.2f} | "
                 f"{m['height_std_m']:.4f} | {m['distance_m']:.2f} |"
             )
         out += [
@@ -330,7 +369,12 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
             g = v.get("gait") or {}
             if any(g.values()):
                 why += f"; gait: steadiest {g['steadiest']}, least power {g['least_power']}"
-        out.append(f"| {q} | {THESIS[q]} | **{v['verdict']}** | {why} |")
+        verdict = f"**{v['verdict']}**"
+        if v.get("finetune_verdict"):
+            verdict = (
+                f"planning: **{v['verdict']}**; after fine-tuning: **{v['finetune_verdict']}**"
+            )
+        out.append(f"| {q} | {THESIS[q]} | {verdict} | {why} |")
     out.append("")
     return out
 
@@ -375,7 +419,11 @@ def write_report(
         "Conventions: returns are the mean of the last 10 training episodes, aggregated over "
         "seeds with the interquartile mean (IQM) and a 95% percentile-bootstrap interval; "
         "unless a table says otherwise, step counts include every real environment step, the "
-        "random-policy steps that fit the first world model among them.",
+        "random-policy steps that fit the first world model among them. With three seeds or "
+        "fewer the IQM trims nothing (it is the mean) and the bootstrap interval is the range "
+        "of the seeds (3 seeds have 10 distinct resamples): two configurations are called "
+        "`higher`/`lower` only when every seed of one is above every seed of the other, which "
+        "two identical methods show one time in 20 (3 against 3 seeds, one direction).",
         "",
     ]
     if notes is not None and Path(notes).exists():

@@ -315,13 +315,30 @@ def _on_grid(steps: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndar
     return out
 
 
+#: Episodes in the window of the logged ``train/return_last10_*`` scalars.
+LAST_EPISODES = 10
+
+
 def _policy_points(run: Run, name: str, policy_only: bool) -> tuple[np.ndarray, np.ndarray]:
-    """``run.scalar(name)``, without the random-data phase's values when ``policy_only``."""
+    """``run.scalar(name)``, or with ``policy_only`` only what the run's own policy earned.
+
+    For a run with a random-data phase, ``policy_only`` keeps the values logged from the end of
+    its 10th episode after that phase on (before it, the last-10-episode window still holds
+    random-policy episodes), or, where the run logged no episodes, those logged after the
+    phase. A run without such a phase keeps everything.
+    """
     steps, values = run.scalar(name)
-    if policy_only and run.random_steps > 0:
+    if not policy_only or run.random_steps <= 0:
+        return steps, values
+    episode_steps = run.scalar("train/episode_return")[0]
+    own = episode_steps[episode_steps > run.random_steps]
+    if not episode_steps.size:
         keep = steps > run.random_steps
-        steps, values = steps[keep], values[keep]
-    return steps, values
+    elif own.size >= LAST_EPISODES:
+        keep = steps >= own[LAST_EPISODES - 1]
+    else:
+        keep = np.zeros(steps.shape, dtype=bool)
+    return steps[keep], values[keep]
 
 
 def aggregate_curve(
@@ -332,6 +349,8 @@ def aggregate_curve(
     points: int = 100,
     exclude_random: bool = False,
     policy_only: bool = False,
+    until: int | None = None,
+    min_seeds: int = 1,
     n_resamples: int = 1000,
 ) -> Curve:
     r"""Aggregates one scalar of several seeds on a common grid of real steps.
@@ -349,10 +368,14 @@ def aggregate_curve(
         points: grid size when ``grid`` is not given. Defaults to ``100``.
         exclude_random: subtract each run's random-data steps from its step axis (the thesis'
             "without random steps" count). Defaults to ``False``: every real step counts.
-        policy_only: leave out the values a run logged during its random-data phase (at real
-            steps up to its ``random_steps``): those episodes ran the random policy, not the
-            method's. The curve of such a run starts at its first episode of its own policy.
-            Defaults to ``False``: every logged value counts.
+        policy_only: read only what each run's own policy earned: a run with a random-data
+            phase contributes the values it logged from the end of its 10th episode after that
+            phase on (until then the last-10-episode window holds random-policy episodes).
+            Defaults to ``False``: every logged value.
+        until: only values logged at real steps up to this count (before any shift by
+            ``exclude_random``). Defaults to ``None``: all.
+        min_seeds: the aggregate is NaN at grid steps where fewer seeds have a value (so a
+            curve does not silently turn into the mean of fewer seeds). Defaults to ``1``.
         n_resamples: bootstrap resamples per grid step. Defaults to ``1000``.
 
     Returns:
@@ -373,9 +396,21 @@ def aggregate_curve(
     """
     if not runs:
         raise ValueError("aggregate_curve needs at least one run")
+    if not isinstance(min_seeds, int) or isinstance(min_seeds, bool) or min_seeds < 1:
+        raise ValueError(f"min_seeds must be an integer >= 1, got {min_seeds!r}")
+
+    def points(run: Run, key: str) -> tuple[np.ndarray, np.ndarray]:
+        steps, values = _policy_points(run, key, policy_only)
+        if until is not None and steps.size and steps[-1] > until:
+            # the run went on: its last value up to ``until`` holds until then
+            keep = steps <= until
+            steps = np.append(steps[keep], until)
+            values = np.append(values[keep], values[keep][-1:] if keep.any() else np.nan)
+        return steps, values
+
     shifted = []
     for run in runs:
-        steps, values = _policy_points(run, name, policy_only)
+        steps, values = points(run, name)
         offset = run.random_steps if exclude_random else 0
         shifted.append((steps - offset, values, offset))
     if grid is None:
@@ -391,14 +426,14 @@ def aggregate_curve(
                 ("train/return_last10_min", band_lo),
                 ("train/return_last10_max", band_hi),
             ):
-                s, v = _policy_points(run, key, policy_only)
+                s, v = points(run, key)
                 if s.size:
                     out[i] = _on_grid(s - off, v, grid)
     center, low, high = (np.full(grid.shape, np.nan) for _ in range(3))
     for j in range(grid.size):
         col = per_seed[:, j]
         col = col[np.isfinite(col)]
-        if col.size:
+        if col.size >= min_seeds:
             ci = bootstrap_ci(col, n_resamples=n_resamples, seed=j)
             center[j], low[j], high[j] = ci.estimate, ci.low, ci.high
     with np.errstate(all="ignore"):
@@ -425,7 +460,8 @@ def final_values(
         at_step: the real step; by default each run's last logged value.
 
     Returns:
-        One value per run that logged the scalar by then (runs without data are left out).
+        One value per run that logged the scalar by then; a run without data, or one that
+        stopped before ``at_step`` (its value there is unknown), is left out.
 
     Examples:
         >>> import tempfile, pathlib
@@ -440,6 +476,8 @@ def final_values(
     for run in runs:
         steps, values = run.scalar(name)
         if at_step is not None:
+            if run.last_step < at_step:
+                continue
             keep = steps <= at_step
             steps, values = steps[keep], values[keep]
         if values.size:
@@ -565,13 +603,27 @@ def ratio_interval(
     return {"low": float(low), "high": float(high), "reached": float(np.isfinite(ratios).mean())}
 
 
+def _random_policy_return(groups: Mapping[str, Sequence[Run]]) -> float | None:
+    """IQM over the runs with a random-data phase of their mean random-policy episode return."""
+    means = []
+    for runs in groups.values():
+        for run in runs:
+            steps, returns = run.scalar("train/episode_return")
+            random = returns[steps <= run.random_steps] if run.random_steps > 0 else returns[:0]
+            if random.size:
+                means.append(float(random.mean()))
+    if not means:
+        return None
+    return float(_nan_iqm_columns(np.asarray(means)[:, None])[0])
+
+
 def ppo_maximum_table(
     groups: Mapping[str, Sequence[Run]],
     reference: str,
     *,
     budget: int | None = None,
     exclude_random: bool = False,
-    points: int = 400,
+    points: int = 1000,
 ) -> dict[str, Any]:
     r"""The thesis' "PPO-maximum" table (table 10), on across-seed IQM curves.
 
@@ -579,10 +631,22 @@ def ppo_maximum_table(
     within ``budget`` real steps; for every configuration the table gives the first real step at
     which its own aggregated curve reaches that threshold, and the ratio to the reference's step
     (below 1: fewer real steps than the reference). Per-seed first steps are given too, each
-    seed's own curve against the same threshold. What a run logged during its random-data phase
-    is left out (``aggregate_curve(..., policy_only=True)``): those episodes ran the random
-    policy, so a threshold below the random policy's returns is not "reached" by collecting
-    random data; the steps of that phase still count unless ``exclude_random``.
+    seed's own curve against the same threshold.
+
+    The curves are those of :func:`aggregate_curve` with ``policy_only=True`` (a run's
+    last-10-episode mean counts once its window holds only episodes of its own policy:
+    random-data episodes never "reach" a threshold, though the steps of that phase count
+    unless ``exclude_random``), each run read
+    up to ``budget`` real steps, and an aggregate only where every seed of the configuration
+    has a value. First steps are grid steps (``grid_spacing`` apart), so each is late by less
+    than one spacing.
+
+    Two caveats travel with the table. The threshold is the maximum of the reference's own noisy
+    curve, which the reference reaches by construction and any other curve must match: the ratio
+    is biased upwards, and ``reference_self`` gives the :func:`ratio_interval` of the reference
+    against itself (both sides resampled from its seeds), what identical methods show. And a
+    threshold at or below ``random_policy_return`` (the IQM of the random-data episodes' mean
+    return) says nothing: random actions do as well.
 
     Args:
         groups: ``{label: runs}``, one entry per configuration; must hold ``reference``.
@@ -592,13 +656,15 @@ def ppo_maximum_table(
         budget: only steps up to this count are considered (the planning budget). Defaults to
             the longest run.
         exclude_random: count steps without the random-data steps. Defaults to ``False``.
-        points: grid resolution. Defaults to ``400``.
+        points: grid resolution. Defaults to ``1000``.
 
     Returns:
-        ``{"threshold", "budget", "exclude_random", "rows": [{label, step, ratio, ratio_ci,
-        seeds_reached, per_seed_steps, seeds}]}``; ``step`` and ``ratio`` are ``None`` where
-        never reached; ``ratio_ci`` is :func:`ratio_interval` over the seeds (``None`` for the
-        reference itself).
+        ``{"reference", "threshold", "budget", "exclude_random", "grid_spacing",
+        "random_policy_return", "reference_self", "rows": [{label, step, ratio, ratio_ci,
+        best, seeds_reached, per_seed_steps, seeds}]}``; ``step`` and ``ratio`` are ``None``
+        where never reached; ``ratio_ci`` is :func:`ratio_interval` over the seeds (``None``
+        for the reference itself); ``random_policy_return`` is ``None`` when no run has a
+        random-data phase.
 
     Raises:
         KeyError: ``reference`` is not in ``groups``.
@@ -626,7 +692,13 @@ def ppo_maximum_table(
     grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
     curves = {
         label: aggregate_curve(
-            runs, grid=grid, exclude_random=exclude_random, policy_only=True, n_resamples=200
+            runs,
+            grid=grid,
+            exclude_random=exclude_random,
+            policy_only=True,
+            until=end,
+            min_seeds=len(runs),
+            n_resamples=200,
         )
         for label, runs in groups.items()
     }
@@ -656,11 +728,15 @@ def ppo_maximum_table(
                 "seeds": curve.seeds,
             }
         )
+    reference_seeds = curves[reference].per_seed
     return {
         "reference": reference,
         "threshold": threshold,
         "budget": int(end),
         "exclude_random": exclude_random,
+        "grid_spacing": float(end / points),
+        "random_policy_return": _random_policy_return(groups),
+        "reference_self": ratio_interval(reference_seeds, reference_seeds, grid, seed=1),
         "rows": rows,
     }
 
