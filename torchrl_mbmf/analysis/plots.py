@@ -36,7 +36,8 @@ def plot_curves(
 
     The thesis' figures show the mean of the last 10 episodes with the min-max of those 10
     episodes shaded; here the line is the IQM over seeds of that mean, the darker shade its 95%
-    bootstrap interval and the light shade the min-max band over seeds and episodes.
+    bootstrap interval and the light shade the min-max band over seeds and episodes. Where
+    some of a curve's seeds have stopped (interrupted runs), its line is dashed.
 
     Args:
         curves: ``{label: curve}``.
@@ -60,13 +61,33 @@ def plot_curves(
         >>> c = Curve(x, y, y - 1, y + 1, y - 2, y + 2, y[None], [0])
         >>> with tempfile.TemporaryDirectory() as d:
         ...     plot_curves({"ppo": c}, os.path.join(d, "c.png"), hline=1.5)
+        >>> two = Curve(x, y, y, y, y, y, np.array([y, [0.0, 1.0, np.nan]]), [0, 1])
+        >>> with tempfile.TemporaryDirectory() as d:  # seed 1 stops: dashed after step 2
+        ...     plot_curves({"ppo": two}, os.path.join(d, "c.png"))
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
     for i, (label, c) in enumerate(curves.items()):
         color = f"C{i}"
         n = len(c.seeds)
-        ax.plot(c.steps, c.iqm, color=color, label=f"{label} (IQM, {n} seed{'s' * (n != 1)})")
+        counts = np.isfinite(np.asarray(c.per_seed, dtype=float)).sum(0)
+        fewer = (counts < n) & np.isfinite(c.iqm)
+        ax.plot(
+            c.steps,
+            np.where(fewer, np.nan, c.iqm),
+            color=color,
+            label=f"{label} (IQM, {n} seed{'s' * (n != 1)})",
+        )
+        if fewer.any():
+            # dashed where some seeds have stopped (joined to the solid part it follows)
+            joined = fewer | np.append(fewer[1:], False)
+            ax.plot(
+                c.steps,
+                np.where(joined, c.iqm, np.nan),
+                color=color,
+                linestyle="--",
+                label=f"{label}, fewer seeds (as few as {int(counts[fewer].min())})",
+            )
         ax.fill_between(c.steps, c.low, c.high, color=color, alpha=0.3, linewidth=0)
         if band:
             ax.fill_between(c.steps, c.band_min, c.band_max, color=color, alpha=0.08, linewidth=0)
