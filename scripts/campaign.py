@@ -137,15 +137,21 @@ def claim_owner(root: Path, name: str) -> int | None:
     return pid if _alive(pid) else None
 
 
-def run_state(root: Path, run: QueuedRun) -> str:
+def run_state(root: Path, run: QueuedRun, results: Path | None = None) -> str:
     """``done``, ``running`` (a live claim), ``interrupted`` (a folder, no summary) or ``queued``.
+
+    A run is also ``done`` when its committed copy in ``results`` holds a summary: on a fresh
+    machine, whose run root is empty, a finished run is not run again.
 
     Args:
         root: the campaign's run root.
         run: the queued run.
+        results: where finished runs' committed copies are (``None``: only ``root`` counts).
     """
     folder = root / run.name
     if (folder / "summary.json").exists():
+        return "done"
+    if results is not None and (results / run.name / "summary.json").exists():
         return "done"
     if claim_owner(root, run.name) is not None:
         return "running"
@@ -171,6 +177,7 @@ def claim_next(
     queue: list[QueuedRun],
     stop_at: dt.datetime | None,
     skip: frozenset[str] = frozenset(),
+    results: Path | None = None,
 ) -> QueuedRun | None:
     """Claims the first run that is neither done nor running (atomically, under a lock).
 
@@ -181,12 +188,13 @@ def claim_next(
         queue: the queue, in priority order.
         stop_at: when the machine's session ends (``None``: never).
         skip: names to pass over (runs that failed in this worker).
+        results: where finished runs' committed copies are (a run with a summary there is done).
     """
     (root / ".claims").mkdir(parents=True, exist_ok=True)
     with (root / ".claims" / ".lock").open("w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         for run in queue:
-            if run.name in skip or run_state(root, run) in ("done", "running"):
+            if run.name in skip or run_state(root, run, results) in ("done", "running"):
                 continue
             if not run.resumable:
                 method = dict(o.split("=", 1) for o in run.overrides if "=" in o).get("method")
@@ -424,7 +432,7 @@ def main() -> None:
     queue = read_queue(args.queue)
     if args.status:
         for run in queue:
-            print(f"{run_state(root, run):12s} {run.name}")
+            print(f"{run_state(root, run, args.results):12s} {run.name}")
         return
     if args.ledger is not None:
         text = args.ledger.read_text() if args.ledger.exists() else ""
@@ -451,7 +459,7 @@ def main() -> None:
         if stop_at < now:  # a session that runs past midnight: the next HH:MM is tomorrow's
             stop_at += dt.timedelta(days=1)
     failed: set[str] = set()
-    while (run := claim_next(root, queue, stop_at, frozenset(failed))) is not None:
+    while (run := claim_next(root, queue, stop_at, frozenset(failed), args.results)) is not None:
         restart = not run.resumable and (root / run.name / "logs").exists()
         code = run_one(root, run, args.results, restart)
         (root / ".claims" / run.name).unlink(missing_ok=True)

@@ -70,6 +70,20 @@ def test_worker_takes_the_first_run_neither_done_nor_claimed_by_a_live_process(t
     assert campaign.claim_next(root, queue, None).name == "c"
 
 
+def test_a_fresh_machine_does_not_run_again_what_the_committed_copies_show_done(tmp_path):
+    root, results = tmp_path / "runs", tmp_path / "results"
+    queue = _queue(tmp_path)
+    (results / "a").mkdir(parents=True)
+    (results / "a" / "summary.json").write_text("{}")  # finished on an earlier machine
+    (results / "b" / "logs").mkdir(parents=True)  # a partial snapshot: not done
+    assert campaign.run_state(root, queue[0]) == "queued"  # without the copies: unknown here
+    assert campaign.run_state(root, queue[0], results) == "done"
+    assert campaign.run_state(root, queue[1], results) == "queued"
+    assert campaign.claim_next(root, queue, None, results=results).name == "b"
+    assert campaign.claim_next(root, queue, None, results=results).name == "c"
+    assert campaign.claim_next(root, queue, None, results=results) is None
+
+
 def test_failed_runs_and_unresumable_runs_without_time_are_passed_over(tmp_path):
     root = tmp_path / "runs"
     queue = _queue(tmp_path)
