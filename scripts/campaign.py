@@ -15,8 +15,10 @@ it with one torch thread in ``<root>/<name>``, and when it finishes copies its s
 ``--results/<name>``, with the root's parent folder cut from the paths they mention, so that the
 copy can be committed. Every start, finish and failure is appended to ``<root>/campaign.log``.
 ``--snapshot`` (at a session's end) copies unfinished runs the same way, with their latest
-checkpoint where it is small (PPO); a worker on a machine that lacks such a run's folder
-restores it from that copy and resumes it.
+checkpoint where it is small (PPO, and PPO-MPC once it fine-tunes); a worker on a machine that
+lacks such a run's folder restores it from that copy and resumes it. A run whose committed copy
+holds a summary is done on any machine. ``--ledger`` appends the machine's events to the
+committed ``events.jsonl`` beside the queue and writes the run table from all of them.
 """
 
 from __future__ import annotations
@@ -251,8 +253,11 @@ def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
     """Copies every unfinished run's small files, and its latest checkpoint when small, to commit.
 
     The partial copy goes to ``results/<name>`` like a finished one; a checkpoint of at most
-    :data:`SMALL_CHECKPOINT_BYTES` goes with it (``results/<name>/checkpoints/``), so that
-    :func:`restore` can continue the run on a machine that lacks its folder.
+    :data:`SMALL_CHECKPOINT_BYTES` goes with it (``results/<name>/checkpoints/``), with the
+    world-model fit snapshots so far (``world_models/fit-*``, about 1.1 MB each), so that
+    :func:`restore` can continue the run on a machine that lacks its folder. PPO checkpoints are
+    small, and so are a PPO-MPC run's once it fine-tunes (they leave the dataset out); those of
+    its planning phase, of MPC and of SAC hold the dataset or the replay buffer and stay behind.
 
     Args:
         root: the campaign's run root.
@@ -272,6 +277,9 @@ def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
         latest = latest_checkpoint(folder)
         if latest is not None and _size(latest) <= SMALL_CHECKPOINT_BYTES:
             shutil.copytree(latest, dest / "checkpoints" / latest.name)
+            # the world-model fits so far, which the finished run's fit evaluation reads
+            for fit in sorted((folder / "world_models").glob("fit-*")):
+                shutil.copytree(fit, dest / "world_models" / fit.name)
         copied.append(run.name)
     return copied
 
@@ -359,6 +367,29 @@ def _events(root: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+def merge_events(root: Path, history: Path) -> list[dict]:
+    """Appends this machine's campaign events that ``history`` lacks to it; returns them all.
+
+    ``history`` (``events.jsonl`` beside the queue) is committed, so the starts, exits and wall
+    times of runs that ran on an earlier machine outlive that machine's ``campaign.log``. A
+    ``prior`` record carries what an earlier ledger table showed of a run whose machine's log
+    was lost before this file existed: ``segments``, ``wall_s`` and ``commits``; a ``lost``
+    record, the ``real_steps`` of a run that restarted from 0 when its machine was lost.
+
+    Args:
+        root: the campaign's run root (its ``campaign.log``).
+        history: the committed event file (created when missing).
+    """
+    lines = history.read_text().splitlines() if history.exists() else []
+    known = {line for line in lines if line.strip()}
+    new = [json.dumps(event) for event in _events(root) if json.dumps(event) not in known]
+    if new:
+        history.parent.mkdir(parents=True, exist_ok=True)
+        with history.open("a") as f:
+            f.write("".join(line + "\n" for line in new))
+    return [json.loads(line) for line in [*lines, *new] if line.strip()]
+
+
 def _last_step(folder: Path) -> int:
     summary = folder / "summary.json"
     if summary.exists():
@@ -370,7 +401,23 @@ def _last_step(folder: Path) -> int:
     return int(float(rows[-1])) if rows else 0
 
 
-def ledger_table(root: Path, queue: list[QueuedRun], results: Path | None) -> str:
+def budget(run: QueuedRun) -> int:
+    """A queued run's budget in real steps: its ``total_steps``, else its recipe's default.
+
+    Args:
+        run: the queued run.
+    """
+    overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
+    if "total_steps" in overrides:
+        return int(overrides["total_steps"])
+    if run.recipe == "sb3_reference" and overrides.get("method") == "sac":
+        return 200_000  # recipes/sb3_reference.py: the thesis' SAC budget
+    return 1_000_000
+
+
+def ledger_table(
+    root: Path, queue: list[QueuedRun], results: Path | None, events: list[dict] | None = None
+) -> str:
     """The markdown table of every queued run: state, steps, budget, commits, segments, wall time.
 
     A run's folder is looked up in ``root`` and, where ``root`` lacks it, in ``results`` (the
@@ -381,8 +428,9 @@ def ledger_table(root: Path, queue: list[QueuedRun], results: Path | None) -> st
         root: the campaign's run root.
         queue: the queue.
         results: where the committed copies are (``None``: only ``root``).
+        events: the campaign events (``None``: ``root/campaign.log``; see :func:`merge_events`).
     """
-    events = _events(root)
+    events = _events(root) if events is None else events
     lines = [
         "| run | state | real steps | budget | checkpoint | commits | segments | wall (min) |",
         "|---|---|---|---|---|---|---|---|",
@@ -395,19 +443,22 @@ def ledger_table(root: Path, queue: list[QueuedRun], results: Path | None) -> st
         if not (root / run.name).exists() and (folder / "logs").exists():
             # only the committed copy: done, or lost with the machine (restarts from 0)
             state = "done" if (folder / "summary.json").exists() else "lost, restarts"
-        overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
-        budget = overrides.get("total_steps", "1000000")
         mine = [e for e in events if e.get("run") == run.name]
         starts = [e for e in mine if e["event"] == "start"]
-        commits = sorted({e["commit"] for e in starts if e.get("commit")})
+        prior = [e for e in mine if e["event"] == "prior"]
+        commits = {e["commit"] for e in starts if e.get("commit")}
+        commits |= {c for e in prior for c in e.get("commits", [])}
         if (folder / "git_commit.txt").exists():
-            commits = commits or [(folder / "git_commit.txt").read_text().strip()[:7]]
-        wall = sum(float(e.get("wall_s", 0)) for e in mine if e["event"] == "exit")
+            commits = commits or {(folder / "git_commit.txt").read_text().strip()[:7]}
+        wall = sum(float(e.get("wall_s", 0)) for e in mine if e["event"] in ("exit", "prior"))
+        segments = len(starts) + sum(int(e.get("segments", 0)) for e in prior)
+        for lost in (e for e in mine if e["event"] == "lost"):
+            state += f" (lost at {int(lost['real_steps']):,} with its machine, restarted from 0)"
         latest = latest_checkpoint(folder)
         lines.append(
-            f"| {run.name} | {state} | {_last_step(folder):,} | {int(budget):,} | "
+            f"| {run.name} | {state} | {_last_step(folder):,} | {budget(run):,} | "
             f"{latest.name.removeprefix('checkpoint-').lstrip('0') if latest else '-'} | "
-            f"{', '.join(commits) or '-'} | {len(starts)} | {wall / 60:.0f} |"
+            f"{', '.join(sorted(commits)) or '-'} | {segments} | {wall / 60:.0f} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -437,7 +488,8 @@ def main() -> None:
     if args.ledger is not None:
         text = args.ledger.read_text() if args.ledger.exists() else ""
         begin, end = "<!-- campaign table -->", "<!-- end campaign table -->"
-        table = f"{begin}\n{ledger_table(root, queue, args.results)}{end}"
+        events = merge_events(root, args.queue.parent / "events.jsonl")
+        table = f"{begin}\n{ledger_table(root, queue, args.results, events)}{end}"
         if begin in text and end in text:
             text = text[: text.index(begin)] + table + text[text.index(end) + len(end) :]
         else:

@@ -208,3 +208,49 @@ def test_logs_after_sigkill_and_resume_equal_uninterrupted_run(tmp_path, straigh
     assert sorted(resumed) == sorted(straight_logs)
     for name, rows in straight_logs.items():
         assert resumed[name] == rows, name
+
+
+def _manifest_components(checkpoint: Path) -> set[str]:
+    return set(json.loads((checkpoint / "manifest.json").read_text())["components"])
+
+
+def test_model_free_checkpoints_leave_the_dataset_out_and_resume_alone(tmp_path, straight_logs):
+    """A fine-tuning checkpoint is all a fresh machine needs to continue the run exactly."""
+    run = tmp_path / "run"
+    _kill_when(run, lambda: _checkpoint(run, 940).exists() and _rows_after(run, 940), *LOG_CFG)
+    planning, model_free = _checkpoint(run, 620), _checkpoint(run, 940)
+    assert "dataset" in _manifest_components(planning)
+    assert "dataset" not in _manifest_components(model_free)
+    assert {"world_model", "model_optim", "loss", "optim", "progress", "rng"} <= (
+        _manifest_components(model_free)
+    )
+    # what a fresh machine has: the small files and the newest (small) checkpoint only
+    shutil.rmtree(planning)
+    assert [p.name for p in (run / "checkpoints").glob("checkpoint-*")] == [model_free.name]
+    done = _run(run, *LOG_CFG)
+    assert done.returncode == 0, done.stderr[-3000:]
+    resumed = _csv_logs(run)
+    assert sorted(resumed) == sorted(straight_logs)
+    for name, rows in straight_logs.items():
+        assert resumed[name] == rows, name
+    entries = json.loads((run / "resume_log.json").read_text())
+    assert entries[-1]["checkpoint"] == model_free.name
+
+
+def test_a_planning_checkpoint_without_its_dataset_is_refused(tmp_path):
+    run = tmp_path / "run"
+    _kill_when(run, lambda: _checkpoint(run, 620).exists(), *LOG_CFG)
+    manifest = _checkpoint(run, 620) / "manifest.json"
+    # a checkpoint whose manifest lost the dataset: its integrity record no longer matches, so
+    # write one for it (as a buggy writer would) and check the resume names what is missing
+    record = json.loads(manifest.read_text())
+    del record["components"]["dataset"]
+    manifest.write_text(json.dumps(record))
+    from torchrl_mbmf.trainers.checkpointing import write_integrity_record
+
+    (_checkpoint(run, 620) / "integrity.json").unlink()
+    write_integrity_record(_checkpoint(run, 620))
+    shutil.rmtree(_checkpoint(run, 460), ignore_errors=True)
+    proc = _run(run, *LOG_CFG)
+    assert proc.returncode != 0
+    assert "holds no dataset, which a run at its progress (phase 'planning') needs" in proc.stderr

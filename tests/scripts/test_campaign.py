@@ -131,13 +131,19 @@ def test_snapshot_keeps_small_checkpoints_and_a_fresh_machine_restores_them(tmp_
     root = tmp_path / "machine1" / "runs"
     results = tmp_path / "results"
     queue = _queue(tmp_path)
-    _partial_run(root, "a", 100)  # a PPO-sized checkpoint
+    _partial_run(root, "a", 100)  # a PPO-sized checkpoint (or a fine-tuning PPO-MPC one)
     _partial_run(root, "c", campaign.SMALL_CHECKPOINT_BYTES + 1)  # holds a dataset
+    for name in ("a", "c"):  # world-model fit snapshots
+        (root / name / "world_models" / "fit-000001000").mkdir(parents=True)
+        (root / name / "world_models" / "fit-000001000" / "state").write_bytes(b"w")
     assert campaign.snapshot(root, queue, results) == ["a", "c"]
     assert [p.name for p in (results / "a" / "checkpoints").iterdir()] == [
         "checkpoint-000000002000"
     ]
+    # the fits go with a restorable checkpoint (the finished run's fit evaluation reads them)
+    assert (results / "a" / "world_models" / "fit-000001000" / "state").read_bytes() == b"w"
     assert not (results / "c" / "checkpoints").exists()
+    assert not (results / "c" / "world_models").exists()
     assert (results / "c" / "logs/scalars/train/episode_return.csv").exists()
     fresh = tmp_path / "machine2" / "runs"
     fresh.mkdir(parents=True)
@@ -150,3 +156,29 @@ def test_snapshot_keeps_small_checkpoints_and_a_fresh_machine_restores_them(tmp_
     assert "| interrupted | 2,000 | 1,000,000 | 2000 |" in rows["a"]
     assert "| lost, restarts | 2,000 | 1,000,000 | - |" in rows["c"]  # committed logs only
     assert "| queued | 0 |" in rows["b"]
+
+
+def test_the_ledger_keeps_every_machines_events_and_each_runs_budget(tmp_path):
+    queue = _queue(tmp_path)
+    history = tmp_path / "events.jsonl"
+    history.write_text(
+        '{"event": "prior", "run": "a", "segments": 2, "wall_s": 600, "commits": ["abc1234"]}\n'
+    )
+    root = tmp_path / "machine2" / "runs"
+    root.mkdir(parents=True)
+    (root / "campaign.log").write_text(
+        '{"time": "t0", "event": "start", "run": "a", "commit": "def5678", "restart": false}\n'
+        '{"time": "t1", "event": "exit", "run": "a", "code": 0, "wall_s": 300.0}\n'
+    )
+    events = campaign.merge_events(root, history)
+    assert [e["event"] for e in events] == ["prior", "start", "exit"]
+    assert campaign.merge_events(root, history) == events  # nothing appended twice
+    assert len(history.read_text().splitlines()) == 3
+    rows = campaign.ledger_table(root, queue, None, events).splitlines()[2:]
+    assert rows[0].endswith("| abc1234, def5678 | 3 | 15 |")  # 2 earlier + 1, 600 s + 300 s
+    assert [campaign.budget(run) for run in queue] == [1_000_000, 200_000, 1_000_000]
+    with history.open("a") as f:
+        f.write('{"event": "lost", "run": "c", "real_steps": 69000, "checkpoint": 62000}\n')
+    events = campaign.merge_events(root, history)
+    row = campaign.ledger_table(root, queue, None, events).splitlines()[4]
+    assert "| c | queued (lost at 69,000 with its machine, restarted from 0) | 0 |" in row

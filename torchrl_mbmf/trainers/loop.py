@@ -165,6 +165,7 @@ class Trainer:
             self.logger,
             keep_last=int(self.cfg.checkpoint.keep_last),
             dataset=None if self.world is None else self.world.dataset,
+            dataset_needed=self.schedule.dataset_needed,
             replay=None
             if self.agent.replay is None
             else (self.agent.replay, self.agent.loss.in_keys),

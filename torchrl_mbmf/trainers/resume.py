@@ -14,7 +14,7 @@ import logging
 import os
 import platform
 import subprocess
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -161,6 +161,9 @@ class RunCheckpoint:
     Keyword Args:
         keep_last: checkpoints kept. Defaults to 2.
         dataset: the transition dataset, if any.
+        dataset_needed: whether a checkpoint at a given progress record holds the dataset
+            (``None``: always). A checkpoint written where it is not needed leaves it out,
+            and resuming from one leaves the dataset as it is.
         replay: ``(buffer, keys)``: the replay buffer and the entries it stores, if any.
         backend: the logger backend's name (for the warning of uncut logs).
 
@@ -183,10 +186,12 @@ class RunCheckpoint:
         *,
         keep_last: int = 2,
         dataset: Any = None,
+        dataset_needed: Callable[[Mapping[str, Any]], bool] | None = None,
         replay: tuple[Any, Any] | None = None,
         backend: str = "csv",
     ) -> None:
         self.run_dir = Path(run_dir)
+        self.dataset_needed = dataset_needed
         self.progress = progress
         self.logger = logger
         self.backend = backend
@@ -204,6 +209,11 @@ class RunCheckpoint:
             buffer, keys = replay
             checkpoint.register("replay", buffer, adapter=ReplayCheckpointAdapter(keys=keys))
         self.checkpoint = checkpoint
+        self.names = ["progress", *components]
+        if dataset is not None:
+            self.names.append("dataset")
+        if replay is not None:
+            self.names.append("replay")
         self.rotation = CheckpointRotation(self.run_dir / "checkpoints", keep_last=keep_last)
 
     def save(self, actor: torch.nn.Module) -> None:
@@ -212,8 +222,13 @@ class RunCheckpoint:
         step = self.progress["real_steps"]
         if latest is not None and latest.name.endswith(f"{step:012d}"):
             return
-        self.rotation.save(self.checkpoint, step=step)
+        self.rotation.save(self.checkpoint, step=step, components=self.components())
         save_policy(actor, self.run_dir, step)
+
+    def components(self) -> list[str]:
+        """The components a checkpoint at the current progress holds (in registration order)."""
+        needed = self.dataset_needed is None or self.dataset_needed(self.progress)
+        return [name for name in self.names if name != "dataset" or needed]
 
     def resume(self) -> bool:
         """Restores the newest intact checkpoint if there is one; returns whether it did.
@@ -233,7 +248,14 @@ class RunCheckpoint:
         # Compare the config first (the progress entry alone), then restore everything.
         self.checkpoint.load(latest, components=["progress"])
         allowed = self._check_compatible(latest, expected, config)
-        self.checkpoint.load(latest)
+        components = self.components()
+        stored = set(self.checkpoint.manifest(latest)["components"])
+        if missing := [name for name in components if name not in stored]:
+            raise ValueError(
+                f"{latest} holds no {', '.join(missing)}, which a run at its progress "
+                f"(phase {self.progress.get('phase')!r}) needs"
+            )
+        self.checkpoint.load(latest, components=components)
         self.progress["config"] = config
         self.progress["fingerprint"] = expected
         cut = self._cut_logs(self.logger.experiment.scalars if self._csv_logs() else {})

@@ -10,7 +10,7 @@ random-policy data for the first world model (``RANDOM``), plan (``PLANNING``) a
 from __future__ import annotations
 
 import enum
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -125,7 +125,7 @@ class PhaseSchedule:
         return Phase.RANDOM if self.model_based else Phase.MODEL_FREE
 
     @staticmethod
-    def phase(progress: MutableMapping[str, Any]) -> Phase:
+    def phase(progress: Mapping[str, Any]) -> Phase:
         """The phase recorded in ``progress``."""
         return Phase(progress["phase"])
 
@@ -156,6 +156,24 @@ class PhaseSchedule:
         """Ends planning: the agent alone acts from here (records ``switch_step``)."""
         progress["phase"] = Phase.MODEL_FREE.value
         progress["switch_step"] = progress["real_steps"]
+
+    def dataset_needed(self, progress: Mapping[str, Any]) -> bool:
+        """Whether the real-transition dataset can still be used (a checkpoint must hold it).
+
+        Only a model-based run that has switched to the model-free phase is done with it:
+        nothing refits the model there, so its checkpoints leave the dataset out and stay
+        small (about the agent's and the model's weights).
+
+        Args:
+            progress: the progress record.
+
+        Examples:
+            >>> from torchrl_mbmf.trainers.schedule import PhaseSchedule
+            >>> s = PhaseSchedule(model_based=True, planning_updates=2, refit_every_updates=1)
+            >>> s.dataset_needed({"phase": "planning"}), s.dataset_needed({"phase": "model_free"})
+            (True, False)
+        """
+        return self.model_based and self.phase(progress) is not Phase.MODEL_FREE
 
     def refit_due(self, progress: MutableMapping[str, Any], planned: bool) -> bool:
         """After an update: whether the model refits now (advances ``next_refit`` if so).
