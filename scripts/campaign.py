@@ -8,7 +8,8 @@ Each queue line is ``<run name> <recipe> <overrides...>`` (``#`` starts a commen
 ``train`` (``recipes/train.py``, which resumes from the run folder's latest checkpoint) or
 ``sb3_reference`` (``recipes/sb3_reference.py``, which cannot resume: an interrupted SB3 run is
 started again from scratch, and only when the time left before ``--stop-at`` covers its expected
-length). A worker takes the first run that has no ``summary.json`` and no live claim, claims it
+length). A worker takes the first run that has no ``summary.json`` and no live claim and whose
+part a fresh machine could not continue fits before ``--stop-at`` (:func:`claim_next`), claims it
 (``<root>/.claims/<name>``, holding the worker's pid; a claim of a dead process is stale), runs
 it with one torch thread in ``<root>/<name>``, and when it finishes copies its small files
 (config, commit, machine, logs, summary, exported policy, train log, resume log) to
@@ -53,8 +54,15 @@ SMALL_FILES = (
 #: Largest checkpoint committed with a partial run (PPO's are about 0.6 MB; a model-based one holds
 #: its dataset and a SAC one its replay buffer, tens of MB: those are not committed).
 SMALL_CHECKPOINT_BYTES = 5 * 2**20
-#: Expected wall time of a non-resumable run (seconds, one core of a busy 2-core machine).
-SB3_EXPECTED_S = {"ppo": 50 * 60, "sac": 80 * 60}
+#: Minutes (one core of the busy 2-core machine; the campaign's runs so far, see LEDGER.md) a
+#: run spends before its checkpoints are small enough to commit, so that a fresh machine can
+#: continue it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for
+#: PPO. MPC and PPO-MPC hold the dataset while they plan: see :func:`at_risk_seconds`.
+AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 150}
+#: The planning phase of MPC and PPO-MPC: its refits, and the planner per step of its horizon.
+PLANNING_FITS_MIN, PLANNER_MIN_PER_HORIZON_STEP = 80, 6
+#: Real steps of the planning phase (10,000 random + 200 updates of 2,048).
+PLANNING_STEPS = 419_600
 
 
 @dataclass(frozen=True)
@@ -174,6 +182,36 @@ def _seconds_left(stop_at: dt.datetime | None) -> float:
     return (stop_at - dt.datetime.now(dt.UTC)).total_seconds()
 
 
+def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
+    """Expected wall time until a run's checkpoints can be committed (a fresh machine resumes).
+
+    For MPC and PPO-MPC this is the rest of the planning phase (PPO-MPC's fine-tuning
+    checkpoints leave the dataset out); for SAC, SAC-MPC and SB3 the rest of the run (SB3 runs
+    restart, so ``done_steps`` does not count); for PPO nothing.
+
+    Args:
+        run: the queued run.
+        done_steps: the real steps it has already run on this machine.
+
+    Examples:
+        >>> run = QueuedRun("r", "train", ("method=ppo_mpc", "planner.horizon=25"))
+        >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=PLANNING_STEPS) / 60
+        (230.0, 0.0)
+    """
+    overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
+    method = str(overrides.get("method", "ppo_mpc"))
+    if not run.resumable:
+        return 60.0 * AT_RISK_MIN.get(f"sb3_{method}", 120)
+    if method in ("mpc", "ppo_mpc"):
+        horizon = int(overrides.get("planner.horizon", 10))
+        minutes = PLANNING_FITS_MIN + PLANNER_MIN_PER_HORIZON_STEP * horizon
+        risky_steps = min(budget(run), PLANNING_STEPS)
+    else:
+        minutes, risky_steps = AT_RISK_MIN.get(method, 180), budget(run)
+    left = max(0.0, 1.0 - done_steps / risky_steps) if risky_steps else 0.0
+    return 60.0 * minutes * left
+
+
 def claim_next(
     root: Path,
     queue: list[QueuedRun],
@@ -181,9 +219,12 @@ def claim_next(
     skip: frozenset[str] = frozenset(),
     results: Path | None = None,
 ) -> QueuedRun | None:
-    """Claims the first run that is neither done nor running (atomically, under a lock).
+    """Claims the next run that is neither done nor running (atomically, under a lock).
 
-    A non-resumable run is passed over when it would not finish before ``stop_at``.
+    The first, in queue order, whose :func:`at_risk_seconds` fit in the time before ``stop_at``
+    (so that a fresh machine can continue it, or it is done). When none fits, the first
+    resumable run, one interrupted on this machine before the others: it continues if the
+    next session has this machine. A non-resumable run that would not finish is never started.
 
     Args:
         root: the campaign's run root.
@@ -195,13 +236,16 @@ def claim_next(
     (root / ".claims").mkdir(parents=True, exist_ok=True)
     with (root / ".claims" / ".lock").open("w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        for run in queue:
-            if run.name in skip or run_state(root, run, results) in ("done", "running"):
-                continue
-            if not run.resumable:
-                method = dict(o.split("=", 1) for o in run.overrides if "=" in o).get("method")
-                if _seconds_left(stop_at) < SB3_EXPECTED_S.get(str(method), 3600):
-                    continue
+        open_runs = [
+            run
+            for run in queue
+            if run.name not in skip and run_state(root, run, results) not in ("done", "running")
+        ]
+        left = _seconds_left(stop_at)
+        fits = [r for r in open_runs if at_risk_seconds(r, _last_step(root / r.name)) <= left]
+        here = [r for r in open_runs if r.resumable and (root / r.name / "logs").exists()]
+        fallback = here + [r for r in open_runs if r.resumable and r not in here]
+        for run in (fits or fallback)[:1]:
             (root / ".claims" / run.name).write_text(f"{os.getpid()}\n")
             return run
     return None
