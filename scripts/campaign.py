@@ -59,8 +59,9 @@ SMALL_CHECKPOINT_BYTES = 5 * 2**20
 #: continue it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for
 #: PPO. MPC and PPO-MPC hold the dataset while they plan: see :func:`at_risk_seconds`.
 AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 150}
-#: The planning phase of MPC and PPO-MPC: its refits, and the planner per step of its horizon.
-PLANNING_FITS_MIN, PLANNER_MIN_PER_HORIZON_STEP = 80, 6
+#: The planning phase of MPC and PPO-MPC: its refits (about 80 min), env steps and updates, and
+#: the planner per step of its horizon (the short-budget h = 10 and h = 25 runs' rates, scaled).
+PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 100, 3.5
 #: Real steps of the planning phase (10,000 random + 200 updates of 2,048).
 PLANNING_STEPS = 419_600
 
@@ -196,7 +197,7 @@ def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
     Examples:
         >>> run = QueuedRun("r", "train", ("method=ppo_mpc", "planner.horizon=25"))
         >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=PLANNING_STEPS) / 60
-        (230.0, 0.0)
+        (187.5, 0.0)
     """
     overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
     method = str(overrides.get("method", "ppo_mpc"))
@@ -204,7 +205,7 @@ def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
         return 60.0 * AT_RISK_MIN.get(f"sb3_{method}", 120)
     if method in ("mpc", "ppo_mpc"):
         horizon = int(overrides.get("planner.horizon", 10))
-        minutes = PLANNING_FITS_MIN + PLANNER_MIN_PER_HORIZON_STEP * horizon
+        minutes = PLANNING_FIXED_MIN + PLANNER_MIN_PER_HORIZON_STEP * horizon
         risky_steps = min(budget(run), PLANNING_STEPS)
     else:
         minutes, risky_steps = AT_RISK_MIN.get(method, 180), budget(run)
