@@ -544,3 +544,66 @@ def test_a_run_read_up_to_a_step_holds_its_last_value_until_then(tmp_path):
     make_run(tmp_path, "ppo", 0, [1.0, 2.0, 3.0], step=2048)
     curve = aggregate_curve(load_runs(tmp_path), grid=[4096, 5000, 6144], until=5000)
     np.testing.assert_allclose(curve.iqm, [2.0, 2.0, np.nan])
+
+
+def test_steps_interval_equals_a_resample_by_resample_loop():
+    from scipy.stats import trim_mean
+
+    from torchrl_mbmf.analysis.runs import steps_interval
+
+    rng = np.random.default_rng(2)
+    grid = np.arange(1, 41) * 1000
+    curves = np.linspace(0, 100, grid.size) + rng.normal(0, 20, (3, grid.size))
+    out = steps_interval(curves, grid, 60.0, n_resamples=300, seed=5)
+    draw = np.random.default_rng(5).integers(0, 3, (300, 3))
+    steps = []
+    for picks in draw:
+        iqm = np.array([trim_mean(col, 0.25) for col in curves[picks].T])
+        hit = np.nonzero(iqm >= 60.0)[0]
+        steps.append(grid[hit[0]] if hit.size else np.inf)
+    low, high = np.percentile(steps, [2.5, 97.5], method="lower")
+    assert (out["low"], out["high"]) == (low, high)
+    assert out["reached"] == pytest.approx(np.isfinite(steps).mean())
+    assert steps_interval(curves, grid, 1e6) == {"low": np.inf, "high": np.inf, "reached": 0.0}
+    with pytest.raises(ValueError, match=r"curves have shape \(40,\)"):
+        steps_interval(curves[0], grid, 60.0)
+
+
+def test_fixed_threshold_table_reads_a_level_given_in_advance(tmp_path):
+    from torchrl_mbmf.analysis.runs import fixed_threshold_table
+
+    for seed in range(3):
+        make_run(tmp_path, "ppo", seed, [10.0, 20.0, 30.0 + seed, 40.0])
+        make_run(tmp_path, "ppo_mpc", seed, [20.0, 45.0 + seed, 50.0, 50.0])
+    groups = {}
+    for r in load_runs(tmp_path):
+        groups.setdefault(r.method, []).append(r)
+    t = fixed_threshold_table(groups, 45.0, source="a level", points=4)
+    rows = {r["label"]: r for r in t["rows"]}
+    # PPO's best (40) is below the level: never, in every resample
+    assert rows["ppo"]["step"] is None and rows["ppo"]["step_ci"]["high"] == np.inf
+    assert rows["ppo"]["seeds_reached"] == 0
+    assert rows["ppo_mpc"]["step"] == 2000 and rows["ppo_mpc"]["per_seed_steps"] == [2000] * 3
+    assert rows["ppo_mpc"]["step_ci"] == {"low": 2000.0, "high": 2000.0, "reached": 1.0}
+    assert (t["threshold"], t["source"], t["budget"]) == (45.0, "a level", 4000)
+    with pytest.raises(ValueError, match="threshold must be a finite return, got nan"):
+        fixed_threshold_table(groups, float("nan"), source="x")
+
+
+def test_the_planning_comparison_has_the_thesis_level_and_the_report_shows_it(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        make_run(runs, "ppo", seed, [300.0 * i + seed for i in range(1, 6)])
+        make_run(runs, "ppo_mpc", seed, [400.0 * i + seed for i in range(1, 6)])
+    analysis = analyze_experiments([runs], tmp_path / "out", gait=False, collect=False)
+    fixed = analysis["exp2"]["fixed_tables"]
+    assert fixed["thesis"]["threshold"] == 1247.0
+    rows = {r["label"]: r for r in fixed["thesis"]["rows"]}
+    # PPO: 301, 601, ..., 1501 reaches 1247 at 5000; PPO-MPC (401, 801, 1201, 1601) at 4000
+    assert (rows["ppo"]["step"], rows["ppo_mpc"]["step"]) == (5000, 4000)
+    ref = fixed["reference_at_step"]
+    assert ref["threshold"] == pytest.approx(1501.0)
+    assert "ppo's IQM return at 5,000" in ref["source"]
+    text = write_report({"thesis": tmp_path / "out"}, tmp_path / "REPORT.md")
+    assert "Real steps to a level fixed in advance" in text
+    assert "| 1,247 (the thesis' PPO maximum within its planning budget" in text

@@ -17,11 +17,13 @@ from torchrl_mbmf.analysis.runs import (
     aggregate_curve,
     compare_intervals,
     final_values,
+    fixed_threshold_table,
     group_runs,
     interval_of,
     load_runs,
     ppo_maximum_table,
     ratio_interval,
+    steps_interval,
 )
 from torchrl_mbmf.analysis.stats import (
     Interval,
@@ -47,6 +49,7 @@ __all__ = [
     "compare_intervals",
     "final_values",
     "first_step_reaching",
+    "fixed_threshold_table",
     "frame_strip",
     "gait_metrics",
     "group_runs",
@@ -70,5 +73,6 @@ __all__ = [
     "rolling_window_stats",
     "run_refit_errors",
     "save_image",
+    "steps_interval",
     "write_report",
 ]

@@ -25,6 +25,7 @@ from torchrl_mbmf.analysis.runs import (
     aggregate_curve,
     compare_intervals,
     final_values,
+    fixed_threshold_table,
     group_runs,
     load_runs,
     ppo_maximum_table,
@@ -41,6 +42,21 @@ REWARDS = ("default", "head_pen", "shin_pen")
 SB3_REFERENCES = {"ppo": "sb3_ppo (Stable-Baselines3)", "sac": "sb3_sac (Stable-Baselines3)"}
 
 
+#: Returns the thesis states for its PPO, used as levels fixed in advance (default reward):
+#: table 10's PPO maximum within the planning budget, and PPO's return at 1e6 (figure 11b).
+THESIS_LEVELS = {
+    "planning": (
+        1247.0,
+        "the thesis' PPO maximum within its planning budget (table 10: 1,247 at 393,216)",
+    ),
+    "finetune": (
+        3000.0,
+        "the thesis' PPO at 1e6 steps (about 3,000, figure 11b), which it says fine-tuned "
+        "PPO-MPC reaches at about 7e5",
+    ),
+}
+
+
 def _as_interval(d: dict[str, Any]) -> Interval:
     return Interval(d["iqm"], d["low"], d["high"], 0.95, d["n"])
 
@@ -51,9 +67,17 @@ def _common_step(groups: Iterable[Sequence[Run]]) -> int:
 
 
 def _comparison(
-    named: dict[str, list[Run]], reference: str, *, budget: int | None = None
+    named: dict[str, list[Run]],
+    reference: str,
+    *,
+    budget: int | None = None,
+    thesis_level: tuple[float, str] | None = None,
 ) -> dict[str, Any]:
-    """Intervals at a common step and PPO-maximum tables for a set of configurations."""
+    """Intervals at a common step, PPO-maximum tables and fixed-level tables.
+
+    The fixed levels (no bias from reading the level off the reference's own curve): the
+    reference's IQM at the common step and, where given, ``thesis_level`` (value, source).
+    """
     named = {k: v for k, v in named.items() if v}
     if reference not in named or len(named) < 2:
         return {"available": sorted(named), "complete": False}
@@ -82,6 +106,18 @@ def _comparison(
         },
     }
     ref = out["intervals"][reference]
+    levels = {}
+    if ref is not None:
+        levels["reference_at_step"] = (
+            float(ref["iqm"]),
+            f"{reference}'s IQM return at {step:,} real steps",
+        )
+    if thesis_level is not None:
+        levels["thesis"] = thesis_level
+    out["fixed_tables"] = {
+        key: fixed_threshold_table(named, value, source=source, budget=step)
+        for key, (value, source) in levels.items()
+    }
     out["versus_reference"] = {
         k: compare_intervals(_as_interval(v), _as_interval(ref))
         for k, v in out["intervals"].items()
@@ -456,7 +492,10 @@ def analyze_experiments(
         named = {m: sel(m, reward) for m in ("ppo", "mpc", "ppo_mpc")}
         planning = [r.switch_step for r in named["ppo_mpc"] if r.switch_step]
         budget = min(planning) if planning else None
-        cmp = _comparison(named, "ppo", budget=budget)
+        default = reward == "default"
+        cmp = _comparison(
+            named, "ppo", budget=budget, thesis_level=THESIS_LEVELS["planning"] if default else None
+        )
         if cmp.get("complete"):
             cmp["figure"] = _curves_figure(
                 with_reference(named, "ppo", reward),
@@ -468,7 +507,11 @@ def analyze_experiments(
             )
         finetuned = [r for r in named["ppo_mpc"] if r.switch_step and r.last_step > r.switch_step]
         if finetuned:
-            ft = _comparison({"ppo": named["ppo"], "ppo_mpc": finetuned}, "ppo")
+            ft = _comparison(
+                {"ppo": named["ppo"], "ppo_mpc": finetuned},
+                "ppo",
+                thesis_level=THESIS_LEVELS["finetune"] if default else None,
+            )
             cmp["finetune"] = ft
             # with the PPO-maximum line of figures 11b, 12b, 13b
             cmp["finetune_figure"] = _curves_figure(

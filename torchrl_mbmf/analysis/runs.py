@@ -741,6 +741,149 @@ def ppo_maximum_table(
     }
 
 
+def steps_interval(
+    per_seed: np.ndarray,
+    grid: np.ndarray,
+    threshold: float,
+    *,
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> dict[str, float]:
+    r"""Percentile-bootstrap interval of the first step an IQM curve reaches a fixed level.
+
+    Each resample draws the seeds with replacement, takes their IQM curve and the first grid
+    step at which it reaches ``threshold``; a resample that never reaches it counts as an
+    infinite step, so an upper bound of ``inf`` means that more than ``(1 - confidence) / 2``
+    of the resamples never got there within the grid.
+
+    Args:
+        per_seed: ``[seeds, grid]`` per-seed curves (``Curve.per_seed``).
+        grid: the real steps of the curves' columns.
+        threshold: the level to reach (fixed beforehand, not read off these curves).
+
+    Keyword Args:
+        confidence: confidence level. Defaults to ``0.95``.
+        n_resamples: bootstrap resamples. Defaults to ``2000``.
+        seed: seed of the resampling. Defaults to ``0``.
+
+    Returns:
+        ``{"low", "high", "reached"}``: the bounds (real steps; ``inf`` for never) and the
+        fraction of resamples that reached the level.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchrl_mbmf.analysis.runs import steps_interval
+        >>> grid = np.array([100, 200, 300])
+        >>> steps_interval(np.array([[0.0, 5.0, 9.0], [1.0, 6.0, 9.0]]), grid, 5.0)
+        {'low': 200.0, 'high': 200.0, 'reached': 1.0}
+    """
+    rows, grid = np.asarray(per_seed, float), np.asarray(grid)
+    if rows.ndim != 2 or rows.shape[1] != grid.size or rows.shape[0] < 1:
+        raise ValueError(f"curves have shape {rows.shape}; expected [seeds >= 1, {grid.size}]")
+    if not 0 < confidence < 1:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    rng = np.random.default_rng(seed)
+    iqm = _nan_iqm_columns(rows[rng.integers(0, len(rows), (n_resamples, len(rows)))])
+    at = _first_index_reaching(iqm, np.full(n_resamples, float(threshold)))
+    steps = np.where(at >= 0, grid[np.maximum(at, 0)].astype(float), np.inf)
+    tail = (1 - confidence) / 2 * 100
+    low, high = np.percentile(steps, [tail, 100 - tail], method="lower")
+    return {"low": float(low), "high": float(high), "reached": float(np.isfinite(steps).mean())}
+
+
+def fixed_threshold_table(
+    groups: Mapping[str, Sequence[Run]],
+    threshold: float,
+    *,
+    source: str,
+    budget: int | None = None,
+    exclude_random: bool = False,
+    points: int = 1000,
+) -> dict[str, Any]:
+    r"""The real steps each configuration needs to reach a level fixed beforehand.
+
+    The variant of :func:`ppo_maximum_table` without its bias: the level is not the maximum of
+    one of the compared curves (which that curve reaches by construction) but a number given
+    in advance, for example the thesis' own PPO return at a budget, or the reference's IQM at
+    the budget. Curves, grid and counting are those of :func:`ppo_maximum_table`; each row has
+    its own :func:`steps_interval` over its seeds, so two configurations compare by their
+    intervals, with no ratio to a curve that may never reach the level.
+
+    Args:
+        groups: ``{label: runs}``, one entry per configuration.
+        threshold: the level.
+
+    Keyword Args:
+        source: where the level comes from (shown with the table).
+        budget: only steps up to this count are considered. Defaults to the longest run.
+        exclude_random: count steps without the random-data steps. Defaults to ``False``.
+        points: grid resolution. Defaults to ``1000``.
+
+    Returns:
+        ``{"threshold", "source", "budget", "exclude_random", "grid_spacing", "rows": [{label,
+        step, step_ci, best, seeds_reached, per_seed_steps, seeds}]}``; ``step`` is ``None``
+        where the IQM curve never reaches the level.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run, fixed_threshold_table
+        >>> def run(label, rows):
+        ...     d = pathlib.Path(tempfile.mkdtemp())
+        ...     (d / "logs/scalars/train").mkdir(parents=True)
+        ...     text = "".join(f"{s},{v}\n" for s, v in rows)
+        ...     _ = (d / "logs/scalars/train/return_last10_mean.csv").write_text(text)
+        ...     return Run(d, {"method": label, "seed": 0})
+        >>> groups = {"ppo": [run("ppo", [(100, 0.0), (200, 5.0)])],
+        ...           "sac": [run("sac", [(100, 6.0), (200, 7.0)])]}
+        >>> t = fixed_threshold_table(groups, 5.5, source="given", points=2)
+        >>> [(r["label"], r["step"], r["step_ci"]["high"]) for r in t["rows"]]
+        [('ppo', None, inf), ('sac', 100, 100.0)]
+    """
+    if not groups:
+        raise ValueError("fixed_threshold_table needs at least one configuration")
+    if not np.isfinite(threshold):
+        raise ValueError(f"threshold must be a finite return, got {threshold}")
+    end = budget
+    if end is None:
+        end = max(r.last_step for runs in groups.values() for r in runs)
+    grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
+    rows = []
+    for label, runs in groups.items():
+        curve = aggregate_curve(
+            runs,
+            grid=grid,
+            exclude_random=exclude_random,
+            policy_only=True,
+            until=end,
+            min_seeds=len(runs),
+            n_resamples=200,
+        )
+        per_seed = [
+            first_step_reaching(grid, np.nan_to_num(row, nan=-np.inf), threshold)
+            for row in curve.per_seed
+        ]
+        rows.append(
+            {
+                "label": label,
+                "step": first_step_reaching(grid, np.nan_to_num(curve.iqm, nan=-np.inf), threshold),
+                "step_ci": steps_interval(curve.per_seed, grid, threshold),
+                "best": float(np.nanmax(curve.iqm)) if np.isfinite(curve.iqm).any() else None,
+                "seeds_reached": sum(s is not None for s in per_seed),
+                "per_seed_steps": per_seed,
+                "seeds": curve.seeds,
+            }
+        )
+    return {
+        "threshold": float(threshold),
+        "source": source,
+        "budget": int(end),
+        "exclude_random": exclude_random,
+        "grid_spacing": float(end / points),
+        "rows": rows,
+    }
+
+
 def interval_of(
     runs: Sequence[Run], name: str = RETURN_CURVE, *, at_step: int | None = None
 ) -> Interval | None:
@@ -775,9 +918,11 @@ __all__ = [
     "aggregate_curve",
     "compare_intervals",
     "final_values",
+    "fixed_threshold_table",
     "group_runs",
     "interval_of",
     "load_runs",
     "ppo_maximum_table",
     "ratio_interval",
+    "steps_interval",
 ]
