@@ -606,4 +606,4 @@ def test_the_planning_comparison_has_the_thesis_level_and_the_report_shows_it(tm
     assert "ppo's IQM return at 5,000" in ref["source"]
     text = write_report({"thesis": tmp_path / "out"}, tmp_path / "REPORT.md")
     assert "Real steps to a level fixed in advance" in text
-    assert "| 1,247 (the thesis' PPO maximum within its planning budget" in text
+    assert "| 1,247: the thesis' PPO maximum within its planning budget" in text

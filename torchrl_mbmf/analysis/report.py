@@ -154,7 +154,7 @@ def _fixed_tables_md(tables: Mapping[str, Any]) -> list[str]:
         for r in t["rows"]:
             step = "never" if r["step"] is None else f"{r['step']:,}"
             out.append(
-                f"| {t['threshold']:,.0f} ({t['source']}) | {r['label']} | {step} | "
+                f"| {t['threshold']:,.0f}: {t['source']} | {r['label']} | {step} | "
                 f"{_steps_ci(r['step_ci'])} | {r['seeds_reached']}/{len(r['seeds'])} |"
             )
     return [*out, ""]
