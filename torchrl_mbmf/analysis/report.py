@@ -281,6 +281,8 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
         refits = f"{r.get('refit_seconds', 0.0) / 3600:.2f}" if r.get("refit_seconds") else "-"
         m = r.get("machine") or {}
         machine = f"{m['cpu_count']} CPUs, Python {m['python']}, torch {m['torch']}" if m else "-"
+        if m and m.get("cpu"):
+            machine = f"{m['cpu']} ({m.get('cpu_capability', '?')}), {machine}"
         out.append(
             f"| {r['name']} | {r['last_step']:,} / {r['total_steps']:,}{done} | "
             f"{r['random_steps']:,} | {_fmt(r['last10_mean_return'])} | "

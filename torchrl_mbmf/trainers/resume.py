@@ -98,8 +98,22 @@ def machine_record() -> dict[str, Any]:
         "torchrl": torchrl.__version__,
         "cpu_count": os.cpu_count(),
         "machine": platform.machine(),
+        # float results differ between CPUs whose kernels differ (one run on two machines)
+        "cpu": _cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch_threads": torch.get_num_threads(),
     }
+
+
+def _cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; the platform's processor string elsewhere)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
 
 
 def git_commit() -> str:
