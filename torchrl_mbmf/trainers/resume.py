@@ -87,8 +87,8 @@ def machine_record() -> dict[str, Any]:
     """Software and hardware this process runs on (written beside a run's config).
 
     Examples:
-        >>> sorted(machine_record())[:3]
-        ['cpu_count', 'machine', 'python']
+        >>> sorted(machine_record())[:4]
+        ['cpu', 'cpu_capability', 'cpu_count', 'machine']
     """
     import torchrl
 
