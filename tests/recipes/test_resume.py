@@ -202,6 +202,10 @@ def test_logs_after_sigkill_and_resume_equal_uninterrupted_run(tmp_path, straigh
             shutil.rmtree(_checkpoint(run, 620))
             assert _checkpoint(run, 460).exists()
     assert _csv_logs(run) != straight_logs  # the killed attempt left rows to cut
+    _resume_and_compare_logs(run, straight_logs)
+
+
+def _resume_and_compare_logs(run: Path, straight_logs: dict[str, list[str]]) -> None:
     done = _run(run, *LOG_CFG)
     assert done.returncode == 0, done.stderr[-3000:]
     resumed = _csv_logs(run)
@@ -227,12 +231,7 @@ def test_model_free_checkpoints_leave_the_dataset_out_and_resume_alone(tmp_path,
     # what a fresh machine has: the small files and the newest (small) checkpoint only
     shutil.rmtree(planning)
     assert [p.name for p in (run / "checkpoints").glob("checkpoint-*")] == [model_free.name]
-    done = _run(run, *LOG_CFG)
-    assert done.returncode == 0, done.stderr[-3000:]
-    resumed = _csv_logs(run)
-    assert sorted(resumed) == sorted(straight_logs)
-    for name, rows in straight_logs.items():
-        assert resumed[name] == rows, name
+    _resume_and_compare_logs(run, straight_logs)
     entries = json.loads((run / "resume_log.json").read_text())
     assert entries[-1]["checkpoint"] == model_free.name
 

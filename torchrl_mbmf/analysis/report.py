@@ -58,11 +58,14 @@ def _per_seed_or_ci(d: Mapping[str, Any] | None, digits: int = 0) -> str:
     return ", ".join(f"{v:,.{digits}f}" for v in d["values"]) + f" (n={d['n']}, each seed)"
 
 
-def _ratio_ci(ci: Mapping[str, float]) -> str:
-    """``[low, high]``; an infinite bound is a share of resamples that never reached it."""
+def _ratio_ci(ci: Mapping[str, float], number: str = ".2f") -> str:
+    """``[low, high]``; an infinite bound is a share of resamples that never reached it.
+
+    ``number`` formats the finite bounds (``",.0f"`` for real steps).
+    """
 
     def bound(x: float) -> str:
-        return "never" if x == float("inf") else f"{x:.2f}"
+        return "never" if x == float("inf") else f"{x:{number}}"
 
     text = f"[{bound(ci['low'])}, {bound(ci['high'])}]"
     if ci["reached"] < 1:
@@ -123,18 +126,6 @@ def _comparison_md(cmp: Mapping[str, Any], rel: str, caption: str, thesis: str |
     return out
 
 
-def _steps_ci(ci: Mapping[str, float]) -> str:
-    """``[low, high]`` in real steps; an infinite bound is resamples that never got there."""
-
-    def bound(x: float) -> str:
-        return "never" if x == float("inf") else f"{x:,.0f}"
-
-    text = f"[{bound(ci['low'])}, {bound(ci['high'])}]"
-    if ci["reached"] < 1:
-        text += f" (reached in {ci['reached']:.0%} of resamples)"
-    return text
-
-
 def _fixed_tables_md(tables: Mapping[str, Any]) -> list[str]:
     """The steps to levels fixed in advance, one row per configuration and level."""
     if not tables:
@@ -155,7 +146,7 @@ def _fixed_tables_md(tables: Mapping[str, Any]) -> list[str]:
             step = "never" if r["step"] is None else f"{r['step']:,}"
             out.append(
                 f"| {t['threshold']:,.0f}: {t['source']} | {r['label']} | {step} | "
-                f"{_steps_ci(r['step_ci'])} | {r['seeds_reached']}/{len(r['seeds'])} |"
+                f"{_ratio_ci(r['step_ci'], ',.0f')} | {r['seeds_reached']}/{len(r['seeds'])} |"
             )
     return [*out, ""]
 

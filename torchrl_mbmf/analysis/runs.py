@@ -617,6 +617,45 @@ def _random_policy_return(groups: Mapping[str, Sequence[Run]]) -> float | None:
     return float(_nan_iqm_columns(np.asarray(means)[:, None])[0])
 
 
+def _table_curves(
+    groups: Mapping[str, Sequence[Run]], budget: int | None, exclude_random: bool, points: int
+) -> tuple[int, np.ndarray, dict[str, Curve]]:
+    """The budget, grid and per-configuration curves of the steps-to-a-level tables."""
+    end = budget
+    if end is None:
+        end = max(r.last_step for runs in groups.values() for r in runs)
+    grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
+    curves = {
+        label: aggregate_curve(
+            runs,
+            grid=grid,
+            exclude_random=exclude_random,
+            policy_only=True,
+            until=end,
+            min_seeds=len(runs),
+            n_resamples=200,
+        )
+        for label, runs in groups.items()
+    }
+    return int(end), grid, curves
+
+
+def _level_row(label: str, curve: Curve, grid: np.ndarray, threshold: float) -> dict[str, Any]:
+    """First steps of a curve (its IQM and each seed) at ``threshold``, with its best value."""
+    per_seed = [
+        first_step_reaching(grid, np.nan_to_num(row, nan=-np.inf), threshold)
+        for row in curve.per_seed
+    ]
+    return {
+        "label": label,
+        "step": first_step_reaching(grid, np.nan_to_num(curve.iqm, nan=-np.inf), threshold),
+        "best": float(np.nanmax(curve.iqm)) if np.isfinite(curve.iqm).any() else None,
+        "seeds_reached": sum(s is not None for s in per_seed),
+        "per_seed_steps": per_seed,
+        "seeds": curve.seeds,
+    }
+
+
 def ppo_maximum_table(
     groups: Mapping[str, Sequence[Run]],
     reference: str,
@@ -686,22 +725,7 @@ def ppo_maximum_table(
     """
     if reference not in groups:
         raise KeyError(f"reference {reference!r} not among the groups {sorted(groups)}")
-    end = budget
-    if end is None:
-        end = max(r.last_step for runs in groups.values() for r in runs)
-    grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
-    curves = {
-        label: aggregate_curve(
-            runs,
-            grid=grid,
-            exclude_random=exclude_random,
-            policy_only=True,
-            until=end,
-            min_seeds=len(runs),
-            n_resamples=200,
-        )
-        for label, runs in groups.items()
-    }
+    end, grid, curves = _table_curves(groups, budget, exclude_random, points)
     ref = curves[reference].iqm
     if not np.isfinite(ref).any():
         raise ValueError(f"the reference {reference!r} logged no returns within {end} steps")
@@ -709,25 +733,15 @@ def ppo_maximum_table(
     ref_step = first_step_reaching(grid, np.nan_to_num(ref, nan=-np.inf), threshold)
     rows = []
     for label, curve in curves.items():
-        step = first_step_reaching(grid, np.nan_to_num(curve.iqm, nan=-np.inf), threshold)
-        per_seed = [
-            first_step_reaching(grid, np.nan_to_num(row, nan=-np.inf), threshold)
-            for row in curve.per_seed
-        ]
-        rows.append(
-            {
-                "label": label,
-                "step": step,
-                "ratio": None if step is None or not ref_step else step / ref_step,
-                "ratio_ci": None
-                if label == reference
-                else ratio_interval(curves[reference].per_seed, curve.per_seed, grid),
-                "best": float(np.nanmax(curve.iqm)) if np.isfinite(curve.iqm).any() else None,
-                "seeds_reached": sum(s is not None for s in per_seed),
-                "per_seed_steps": per_seed,
-                "seeds": curve.seeds,
-            }
+        row = _level_row(label, curve, grid, threshold)
+        step = row["step"]
+        row["ratio"] = None if step is None or not ref_step else step / ref_step
+        row["ratio_ci"] = (
+            None
+            if label == reference
+            else ratio_interval(curves[reference].per_seed, curve.per_seed, grid)
         )
+        rows.append(row)
     reference_seeds = curves[reference].per_seed
     return {
         "reference": reference,
@@ -844,36 +858,12 @@ def fixed_threshold_table(
         raise ValueError("fixed_threshold_table needs at least one configuration")
     if not np.isfinite(threshold):
         raise ValueError(f"threshold must be a finite return, got {threshold}")
-    end = budget
-    if end is None:
-        end = max(r.last_step for runs in groups.values() for r in runs)
-    grid = np.linspace(0, end, points + 1)[1:].round().astype(np.int64)
+    end, grid, curves = _table_curves(groups, budget, exclude_random, points)
     rows = []
-    for label, runs in groups.items():
-        curve = aggregate_curve(
-            runs,
-            grid=grid,
-            exclude_random=exclude_random,
-            policy_only=True,
-            until=end,
-            min_seeds=len(runs),
-            n_resamples=200,
-        )
-        per_seed = [
-            first_step_reaching(grid, np.nan_to_num(row, nan=-np.inf), threshold)
-            for row in curve.per_seed
-        ]
-        rows.append(
-            {
-                "label": label,
-                "step": first_step_reaching(grid, np.nan_to_num(curve.iqm, nan=-np.inf), threshold),
-                "step_ci": steps_interval(curve.per_seed, grid, threshold),
-                "best": float(np.nanmax(curve.iqm)) if np.isfinite(curve.iqm).any() else None,
-                "seeds_reached": sum(s is not None for s in per_seed),
-                "per_seed_steps": per_seed,
-                "seeds": curve.seeds,
-            }
-        )
+    for label, curve in curves.items():
+        row = _level_row(label, curve, grid, threshold)
+        row["step_ci"] = steps_interval(curve.per_seed, grid, threshold)
+        rows.append(row)
     return {
         "threshold": float(threshold),
         "source": source,
