@@ -62,7 +62,8 @@ AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 150
 #: The planning phase of MPC and PPO-MPC: its refits (about 80 min), env steps and updates, and
 #: the planner per step of its horizon (the short-budget h = 10 and h = 25 runs' rates, scaled).
 PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 100, 3.5
-#: Real steps of the planning phase (10,000 random + 200 updates of 2,048).
+#: Real steps of the planning phase (10,000 random + 200 updates of 2,048: the thesis settings,
+#: which every queued run keeps).
 PLANNING_STEPS = 419_600
 
 
@@ -205,8 +206,9 @@ def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
         return 60.0 * AT_RISK_MIN.get(f"sb3_{method}", 120)
     if method in ("mpc", "ppo_mpc"):
         horizon = int(overrides.get("planner.horizon", 10))
-        minutes = PLANNING_FIXED_MIN + PLANNER_MIN_PER_HORIZON_STEP * horizon
         risky_steps = min(budget(run), PLANNING_STEPS)
+        minutes = PLANNING_FIXED_MIN + PLANNER_MIN_PER_HORIZON_STEP * horizon
+        minutes *= risky_steps / PLANNING_STEPS  # a shorter budget plans for less
     else:
         minutes, risky_steps = AT_RISK_MIN.get(method, 180), budget(run)
     left = max(0.0, 1.0 - done_steps / risky_steps) if risky_steps else 0.0
@@ -315,7 +317,8 @@ def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
     copied = []
     for run in queue:
         folder = root / run.name
-        if run_state(root, run) == "done" or not (folder / "logs").exists():
+        # done here or, finished on another machine, in its committed copy: never overwritten
+        if run_state(root, run, results) == "done" or not (folder / "logs").exists():
             continue
         dest = results / run.name
         copy_small_files(folder, dest, str(root.parent) + os.sep)
@@ -482,9 +485,12 @@ def ledger_table(
     ]
     for run in queue:
         folder = root / run.name
-        if not folder.exists() and results is not None:
+        finished_elsewhere = results is not None and (results / run.name / "summary.json").exists()
+        if results is not None and (not folder.exists() or finished_elsewhere):
             folder = results / run.name
         state = run_state(root, run) if (root / run.name).exists() else "queued"
+        if finished_elsewhere:
+            state = "done"
         if not (root / run.name).exists() and (folder / "logs").exists():
             # only the committed copy: done, or lost with the machine (restarts from 0)
             state = "done" if (folder / "summary.json").exists() else "lost, restarts"

@@ -607,3 +607,19 @@ def test_the_planning_comparison_has_the_thesis_level_and_the_report_shows_it(tm
     text = write_report({"thesis": tmp_path / "out"}, tmp_path / "REPORT.md")
     assert "Real steps to a level fixed in advance" in text
     assert "| 1,247: the thesis' PPO maximum within its planning budget" in text
+
+
+def test_a_resampled_curve_exists_only_where_all_its_seeds_have_a_value():
+    from torchrl_mbmf.analysis.runs import ratio_interval, steps_interval
+
+    grid = np.array([100, 200, 300])
+    # seed 0 has no value at 200 (its last-10 window not yet its own policy's), the others
+    # reach the level there; every seed has reached it at 300
+    curves = np.array([[0.0, np.nan, 9.0], [0.0, 6.0, 9.0], [0.0, 6.0, 9.0], [0.0, 6.0, 9.0]])
+    out = steps_interval(curves, grid, 5.0, n_resamples=4000)
+    # the resamples holding seed 0 (68% of them) have no curve at 200: they reach it at 300
+    assert (out["low"], out["high"], out["reached"]) == (200.0, 300.0, 1.0)
+    # the reference's maximum, 6, at 200: the same resamples reach it only at 300 (ratio 1.5)
+    reference = np.array([[0.0, 6.0, 6.0]] * 4)
+    ci = ratio_interval(reference, curves, grid, n_resamples=4000)
+    assert (ci["low"], ci["high"]) == (1.0, 1.5)

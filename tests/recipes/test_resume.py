@@ -151,11 +151,16 @@ def _csv_logs(run_dir: Path) -> dict[str, list[str]]:
 
 
 @pytest.fixture(scope="module")
-def straight_logs(tmp_path_factory):
+def straight_run(tmp_path_factory):
     run = tmp_path_factory.mktemp("straight") / "run"
     proc = _run(run, *LOG_CFG)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return _csv_logs(run)
+    return run
+
+
+@pytest.fixture(scope="module")
+def straight_logs(straight_run):
+    return _csv_logs(straight_run)
 
 
 def _rows_after(run_dir: Path, step: int) -> bool:
@@ -218,7 +223,9 @@ def _manifest_components(checkpoint: Path) -> set[str]:
     return set(json.loads((checkpoint / "manifest.json").read_text())["components"])
 
 
-def test_model_free_checkpoints_leave_the_dataset_out_and_resume_alone(tmp_path, straight_logs):
+def test_model_free_checkpoints_leave_the_dataset_out_and_resume_alone(
+    tmp_path, straight_run, straight_logs
+):
     """A fine-tuning checkpoint is all a fresh machine needs to continue the run exactly."""
     run = tmp_path / "run"
     _kill_when(run, lambda: _checkpoint(run, 940).exists() and _rows_after(run, 940), *LOG_CFG)
@@ -234,6 +241,10 @@ def test_model_free_checkpoints_leave_the_dataset_out_and_resume_alone(tmp_path,
     _resume_and_compare_logs(run, straight_logs)
     entries = json.loads((run / "resume_log.json").read_text())
     assert entries[-1]["checkpoint"] == model_free.name
+    # every weight, the world model's (unused after the switch) included, as uninterrupted
+    resumed = json.loads((run / "summary.json").read_text())
+    reference = json.loads((straight_run / "summary.json").read_text())
+    assert resumed["params_sha256"] == reference["params_sha256"]
 
 
 def test_a_planning_checkpoint_without_its_dataset_is_refused(tmp_path):

@@ -121,8 +121,13 @@ def test_a_run_starts_only_where_what_a_fresh_machine_would_lose_fits_in_the_ses
     assert campaign.at_risk_seconds(queue[0], 300_000) / 60 == pytest.approx(53.4, abs=0.1)
     assert campaign.claim_next(root, queue, hours(1.5)).name == "long"
     (root / ".claims" / "long").unlink()
-    # nothing fits: the run interrupted here goes first (it continues if the machine stays)
-    assert campaign.claim_next(root, queue, hours(0.2), frozenset({"ppo"})).name == "long"
+    # nothing fits: the run interrupted here goes before an earlier one that has not started
+    reordered = [queue[2], queue[0]]  # tune (not started), long (interrupted here)
+    assert campaign.claim_next(root, reordered, hours(0.2)).name == "long"
+    (root / ".claims" / "long").unlink()
+    assert campaign.claim_next(root, reordered[:1], hours(0.2)).name == "tune"
+    short = campaign.QueuedRun("s", "train", ("method=ppo_mpc", "total_steps=104900"))
+    assert campaign.at_risk_seconds(short) / 60 == pytest.approx(135 / 4)
 
 
 def test_small_files_are_copied_without_the_machines_paths(tmp_path):
@@ -186,6 +191,13 @@ def test_snapshot_keeps_small_checkpoints_and_a_fresh_machine_restores_them(tmp_
     assert "| interrupted | 2,000 | 1,000,000 | 2000 |" in rows["a"]
     assert "| lost, restarts | 2,000 | 1,000,000 | - |" in rows["c"]  # committed logs only
     assert "| queued | 0 |" in rows["b"]
+    # the run then finishes on the fresh machine and its copy is committed; the first machine,
+    # back later with its stale folder, neither snapshots it over the copy nor lists it open
+    (results / "a" / "summary.json").write_text('{"real_steps": 3000}')
+    assert campaign.snapshot(root, queue, results) == ["c"]
+    assert (results / "a" / "summary.json").exists()
+    done = campaign.ledger_table(root, queue, results).splitlines()[2]
+    assert done.startswith("| a | done | 3,000 |")
 
 
 def test_the_ledger_keeps_every_machines_events_and_each_runs_budget(tmp_path):

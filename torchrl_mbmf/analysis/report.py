@@ -132,10 +132,13 @@ def _fixed_tables_md(tables: Mapping[str, Any]) -> list[str]:
         return []
     spacing = next(iter(tables.values()))["grid_spacing"]
     out = [
-        "Real steps to a level fixed in advance, every real step counted. Unlike the tables "
-        "above, the level is not read off a compared curve, so the steps carry no bias towards "
-        "the reference; each has its own 95% bootstrap interval over its seeds "
-        f"(grid {spacing:,.0f} steps):",
+        "Real steps to a level fixed in advance, every real step counted, each with its own "
+        "95% bootstrap interval over its seeds (a resample's curve only where all its seeds "
+        f"have a value; grid {spacing:,.0f} steps). The thesis' level is not read off any "
+        "compared curve, so it favours no side. The reference's IQM at the step is the end "
+        "point of the reference's own curve, which it reaches by construction at that step "
+        "at the latest; unlike its maximum (the tables above), it is not the best point of "
+        "its noise:",
         "",
         "| level | configuration | first step of the IQM curve | 95% bootstrap interval "
         "| seeds reaching it alone |",

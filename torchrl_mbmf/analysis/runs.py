@@ -512,6 +512,15 @@ def compare_intervals(a: Interval, b: Interval) -> str:
     return "overlapping"
 
 
+def _resampled_iqm(rows: np.ndarray) -> np.ndarray:
+    """IQM over axis ``-2`` of resampled seeds, NaN in a column where any drawn seed is NaN.
+
+    As the point estimate (:func:`aggregate_curve` with every seed required), a resample's
+    curve exists only where all of its seeds have a value.
+    """
+    return np.where(np.isnan(rows).any(-2), np.nan, _nan_iqm_columns(rows))
+
+
 def _nan_iqm_columns(rows: np.ndarray) -> np.ndarray:
     """IQM over axis ``-2`` ignoring NaN (``[..., seeds, grid] -> [..., grid]``; NaN if none)."""
     ordered = np.sort(rows, axis=-2)  # NaN last
@@ -584,10 +593,10 @@ def ratio_interval(
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
     rng = np.random.default_rng(seed)
-    ref_iqm = _nan_iqm_columns(
+    ref_iqm = _resampled_iqm(
         reference[rng.integers(0, len(reference), (n_resamples, len(reference)))]
     )
-    cand_iqm = _nan_iqm_columns(
+    cand_iqm = _resampled_iqm(
         candidate[rng.integers(0, len(candidate), (n_resamples, len(candidate)))]
     )
     with np.errstate(all="ignore"):
@@ -798,7 +807,7 @@ def steps_interval(
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
     rng = np.random.default_rng(seed)
-    iqm = _nan_iqm_columns(rows[rng.integers(0, len(rows), (n_resamples, len(rows)))])
+    iqm = _resampled_iqm(rows[rng.integers(0, len(rows), (n_resamples, len(rows)))])
     at = _first_index_reaching(iqm, np.full(n_resamples, float(threshold)))
     steps = np.where(at >= 0, grid[np.maximum(at, 0)].astype(float), np.inf)
     tail = (1 - confidence) / 2 * 100
