@@ -348,15 +348,22 @@ def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
         The names restored.
     """
     restored = []
-    for run in queue:
-        copy = results / run.name
-        if (root / run.name).exists() or (copy / "summary.json").exists():
-            continue
-        if latest_checkpoint(copy) is None:
-            continue
-        shutil.copytree(copy, root / run.name)
-        _log(root, event="restored", run=run.name, checkpoint=latest_checkpoint(copy).name)
-        restored.append(run.name)
+    (root / ".claims").mkdir(parents=True, exist_ok=True)
+    # under the claims' lock: no worker claims a folder while another is still copying it
+    with (root / ".claims" / ".lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        for run in queue:
+            copy = results / run.name
+            if (root / run.name).exists() or (copy / "summary.json").exists():
+                continue
+            if latest_checkpoint(copy) is None:
+                continue
+            staging = root / f".{run.name}.restoring"
+            shutil.rmtree(staging, ignore_errors=True)
+            shutil.copytree(copy, staging)
+            staging.rename(root / run.name)  # whole, or not at all
+            _log(root, event="restored", run=run.name, checkpoint=latest_checkpoint(copy).name)
+            restored.append(run.name)
     return restored
 
 
