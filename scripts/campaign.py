@@ -58,7 +58,7 @@ SMALL_CHECKPOINT_BYTES = 5 * 2**20
 #: run spends before its checkpoints are small enough to commit, so that a fresh machine can
 #: continue it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for
 #: PPO. MPC and PPO-MPC hold the dataset while they plan: see :func:`at_risk_seconds`.
-AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 150}
+AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 100}
 #: The planning phase of MPC and PPO-MPC: its refits (about 80 min), env steps and updates, and
 #: the planner per step of its horizon (the short-budget h = 10 and h = 25 runs' rates, scaled).
 PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 100, 3.5
