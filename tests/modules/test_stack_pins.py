@@ -182,6 +182,17 @@ def transitions(n: int, seed: int, state_dim: int = 18, action_dim: int = 6) -> 
     ).reshape(1, n)
 
 
+#: Digests of the same computations on a machine whose elementwise float kernels differ from
+#: the recording machine's (torch's AVX512 kernels, where the canary above, a small matmul and
+#: Adam fit, agreed): MPPI's softmax weights and the Gaussian ensemble's log-variance path give
+#: other bits there, with every readable number within 1e-4. Either output pins the code.
+OTHER_KERNELS: dict[str, str] = {
+    "mppi": "09faeffddfb4ba6fbe23359c652379f57e2a729236bc9bfabfb9c14a5651017d|('planner', "
+    "'best_return'),('planner', 'mean_return'),action,action_log_prob,loc,scale",
+    "fit_ensemble_gaussian": "c073ba105a06059f69f22e20bef7339aecd2e1c7c151ad21c84d7bcb8b21f70d",
+}
+
+
 def canary() -> str:
     """Stock model outputs and a short stock fit: equal only on the same float kernels."""
     torch.manual_seed(0)
@@ -320,7 +331,7 @@ def test_planner_variant_is_pinned(name, real, policy, single, ensemble):
     torch.testing.assert_close(numbers, want_numbers, rtol=1e-4, atol=1e-4)
     if canary() != CANARY:
         pytest.skip("float kernels of this machine differ from those the hashes were recorded on")
-    assert digest == want_digest
+    assert digest in (want_digest, OTHER_KERNELS.get(name))
 
 
 # ------------------------------------------------------------------------------------- fits
@@ -389,4 +400,4 @@ def test_fit_is_pinned(name):
     assert last == pytest.approx(want_last, rel=1e-4, abs=1e-5)
     if canary() != CANARY:
         pytest.skip("float kernels of this machine differ from those the hashes were recorded on")
-    assert digest == want_digest
+    assert digest in (want_digest, OTHER_KERNELS.get(name))
