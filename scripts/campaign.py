@@ -437,7 +437,11 @@ def merge_events(root: Path, history: Path) -> list[dict]:
     """
     lines = history.read_text().splitlines() if history.exists() else []
     known = {line for line in lines if line.strip()}
-    new = [json.dumps(event) for event in _events(root) if json.dumps(event) not in known]
+    events = _events(root)
+    for event in events:  # the committed file names no path of this machine
+        if "to" in event:
+            event["to"] = Path(event["to"]).name
+    new = [json.dumps(event) for event in events if json.dumps(event) not in known]
     if new:
         history.parent.mkdir(parents=True, exist_ok=True)
         with history.open("a") as f:
