@@ -62,6 +62,10 @@ AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 100
 #: The planning phase of MPC and PPO-MPC: its refits (about 80 min), env steps and updates, and
 #: the planner per step of its horizon (the short-budget h = 10 and h = 25 runs' rates, scaled).
 PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 100, 3.5
+#: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
+#: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
+#: run whose at-risk part is longer can finish only across sessions that keep one machine.
+FRESH_SESSION_MIN = 165
 #: Real steps of the planning phase (10,000 random + 200 updates of 2,048: the thesis settings,
 #: which every queued run keeps).
 PLANNING_STEPS = 419_600
@@ -224,10 +228,13 @@ def claim_next(
 ) -> QueuedRun | None:
     """Claims the next run that is neither done nor running (atomically, under a lock).
 
-    The first, in queue order, whose :func:`at_risk_seconds` fit in the time before ``stop_at``
-    (so that a fresh machine can continue it, or it is done). When none fits, the first
-    resumable run, one interrupted on this machine before the others: it continues if the
-    next session has this machine. A non-resumable run that would not finish is never started.
+    The first whose :func:`at_risk_seconds` fit in the time before ``stop_at`` (so that a fresh
+    machine can continue it, or it is done), runs interrupted on this machine before the
+    others, then in queue order. When none fits, a resumable run that continues only if the
+    next session has this machine: one interrupted here first, then one whose at-risk part is
+    longer than a fresh machine's session (:data:`FRESH_SESSION_MIN`; it can finish in no other
+    way), then the others in queue order. A non-resumable run that would not finish is never
+    started.
 
     Args:
         root: the campaign's run root.
@@ -245,9 +252,16 @@ def claim_next(
             if run.name not in skip and run_state(root, run, results) not in ("done", "running")
         ]
         left = _seconds_left(stop_at)
-        fits = [r for r in open_runs if at_risk_seconds(r, _last_step(root / r.name)) <= left]
         here = [r for r in open_runs if r.resumable and (root / r.name / "logs").exists()]
-        fallback = here + [r for r in open_runs if r.resumable and r not in here]
+        fits = [r for r in open_runs if at_risk_seconds(r, _last_step(root / r.name)) <= left]
+        fits = [r for r in fits if r in here] + [r for r in fits if r not in here]
+        kept_only = [
+            r
+            for r in open_runs
+            if r.resumable and r not in here and at_risk_seconds(r) > 60.0 * FRESH_SESSION_MIN
+        ]
+        rest = [r for r in open_runs if r.resumable and r not in here and r not in kept_only]
+        fallback = here + kept_only + rest
         for run in (fits or fallback)[:1]:
             (root / ".claims" / run.name).write_text(f"{os.getpid()}\n")
             return run

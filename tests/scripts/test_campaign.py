@@ -126,8 +126,31 @@ def test_a_run_starts_only_where_what_a_fresh_machine_would_lose_fits_in_the_ses
     assert campaign.claim_next(root, reordered, hours(0.2)).name == "long"
     (root / ".claims" / "long").unlink()
     assert campaign.claim_next(root, reordered[:1], hours(0.2)).name == "tune"
+    # neither fits: the run that cannot finish on a fresh machine goes first (h=25, longer than
+    # a fresh machine's session), since only a kept machine helps it; the h=10 run waits for
+    # a session's start
+    assert campaign.at_risk_seconds(queue[0]) > 60 * campaign.FRESH_SESSION_MIN
+    assert campaign.at_risk_seconds(queue[2]) < 60 * campaign.FRESH_SESSION_MIN
+    fresh = tmp_path / "fresh"
+    assert campaign.claim_next(fresh, reordered, hours(1)).name == "long"
+    assert campaign.claim_next(fresh, reordered, hours(1)).name == "tune"
     short = campaign.QueuedRun("s", "train", ("method=ppo_mpc", "total_steps=104900"))
     assert campaign.at_risk_seconds(short) / 60 == pytest.approx(135 / 4)
+
+
+def test_runs_interrupted_here_that_fit_go_before_the_queue_order(tmp_path):
+    queue = _queue(
+        tmp_path,
+        "first train method=ppo_mpc total_steps=419600 seed=0\n"
+        "second train method=ppo_mpc total_steps=419600 seed=1\n",
+    )
+    root = tmp_path / "runs"
+    steps = root / "second" / "logs" / "scalars" / "train"
+    steps.mkdir(parents=True)
+    (steps / "episode_return.csv").write_text("200000,1.0\n")  # interrupted here
+    later = dt.datetime.now(dt.UTC) + dt.timedelta(hours=3)
+    assert campaign.claim_next(root, queue, later).name == "second"  # its work is kept
+    assert campaign.claim_next(root, queue, later).name == "first"
 
 
 def test_small_files_are_copied_without_the_machines_paths(tmp_path):
