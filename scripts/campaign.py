@@ -253,15 +253,12 @@ def claim_next(
         ]
         left = _seconds_left(stop_at)
         here = [r for r in open_runs if r.resumable and (root / r.name / "logs").exists()]
-        fits = [r for r in open_runs if at_risk_seconds(r, _last_step(root / r.name)) <= left]
-        fits = [r for r in fits if r in here] + [r for r in fits if r not in here]
-        kept_only = [
-            r
-            for r in open_runs
-            if r.resumable and r not in here and at_risk_seconds(r) > 60.0 * FRESH_SESSION_MIN
-        ]
-        rest = [r for r in open_runs if r.resumable and r not in here and r not in kept_only]
-        fallback = here + kept_only + rest
+        first = sorted(open_runs, key=lambda r: r not in here)  # stable: else queue order
+        fits = [r for r in first if at_risk_seconds(r, _last_step(root / r.name)) <= left]
+        fresh_fits = lambda r: at_risk_seconds(r) <= 60.0 * FRESH_SESSION_MIN  # noqa: E731
+        fallback = sorted(
+            (r for r in first if r.resumable), key=lambda r: r not in here and fresh_fits(r)
+        )
         for run in (fits or fallback)[:1]:
             (root / ".claims" / run.name).write_text(f"{os.getpid()}\n")
             return run
