@@ -2,18 +2,22 @@
 
 python benchmarks/planner.py               # 1 torch thread -> results/planner.json
 python benchmarks/planner.py --threads 2   # -> results/planner_threads2.json
+python benchmarks/planner.py --horizon 25 --previous COMMIT --batches 1 --no-collection
+                                           # -> results/planner_h25.json
 
 Every planner plans from the same real states on the same thesis-sized model (24-500-500-19)
-and PPO actor (17-64-64-6), in one process, in alternating rounds (A B C A B C ...), so drift
-of a shared machine hits all of them alike; the table gives the median over rounds of the
-ms per plan and the median of the per-round ratios. Rows:
+and PPO actor (17-64-64-6; ``--distribution``: ``normal``, the recipes' Gaussian with a tanh of
+the MLP as its mean, or ``tanh_normal``, the library's default), in one process, in
+alternating rounds (A B C A B C ...), so drift of a shared machine hits all of them alike;
+the table gives the median over rounds of the ms per plan and the median of the per-round
+ratios. Rows:
 
 - ``ours``: ``PolicyGuidedMPCPlanner`` with its fused rollout (the default).
 - ``step loop``: the same planner with ``fused_rollout = False`` (the per-step loop it is
   tested against; bit-identical results).
 - ``previous``: ``PolicyGuidedMPCPlanner`` of the commit ``--previous`` (default: the last one
-  before the fused rollout), imported from git under a private package name. Skipped outside
-  a git checkout.
+  before the fused rollout), imported from git under a private package name (every file of
+  the planners' package at that commit). Skipped outside a git checkout.
 - ``torchrl CEMPlanner(optim_steps=1, top_k=1)`` on the same learned env (per state in turn
   for ``B > 1``: its dims assume an unbatched env).
 
@@ -49,15 +53,18 @@ from torchrl_mbmf.modules import DeltaDynamicsModel, PolicyGuidedMPCPlanner, mak
 M, H = 15, 10
 PREVIOUS = "1848f94"  # the planner before the fused rollout
 ROOT = Path(__file__).resolve().parents[1]
+PLANNERS = "torchrl_mbmf/modules/planners"
 
 
-def plan_flops(model: DeltaDynamicsModel, actor_cells=(64, 64), obs_dim=17, act_dim=6) -> int:
+def plan_flops(
+    model: DeltaDynamicsModel, actor_cells=(64, 64), obs_dim=17, act_dim=6, horizon: int = H
+) -> int:
     """Multiply-add FLOPs of one plan (model + policy MLPs, m x h forward passes)."""
     dims = [model.state_dim + model.action_dim, *model.hidden_sizes, model.state_dim + 1]
     model_f = sum(2 * a * b for a, b in itertools.pairwise(dims))
     adims = [obs_dim, *actor_cells, act_dim]
     actor_f = sum(2 * a * b for a, b in itertools.pairwise(adims))
-    return M * H * (model_f + actor_f)
+    return M * horizon * (model_f + actor_f)
 
 
 def packed_linear_peak_gflops(size: int = 1024) -> float:
@@ -79,10 +86,16 @@ def packed_linear_peak_gflops(size: int = 1024) -> float:
 
 def previous_planner_class(commit: str) -> type | None:
     """``PolicyGuidedMPCPlanner`` as of ``commit``, imported under a private package name."""
-    names = ("common", "fast_model", "sampling", "policy_guided")
     package = f"planners_at_{commit}"
     tmp = Path(tempfile.mkdtemp())
     try:
+        listing = subprocess.run(
+            ["git", "-C", str(ROOT), "ls-tree", "--name-only", commit, PLANNERS + "/"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.split()
+        names = [Path(f).stem for f in listing if f.endswith(".py") and not f.endswith("__.py")]
         (tmp / package).mkdir()
         (tmp / package / "__init__.py").write_text("")
         for name in names:
@@ -92,7 +105,7 @@ def previous_planner_class(commit: str) -> type | None:
                     "-C",
                     str(ROOT),
                     "show",
-                    f"{commit}:torchrl_mbmf/modules/planners/{name}.py",
+                    f"{commit}:{PLANNERS}/{name}.py",
                 ],
                 capture_output=True,
                 text=True,
@@ -127,11 +140,11 @@ def alternate(calls: dict[str, object], *, rounds: int, number: int) -> dict[str
     return times
 
 
-def collection_fps(num_envs: int, frames: int) -> float:
+def collection_fps(num_envs: int, frames: int, distribution: str, horizon: int) -> float:
     real = make_half_cheetah_env(num_envs=num_envs, seed=0)
-    actor, _ = make_ppo_actor_critic(real)
+    actor, _ = make_ppo_actor_critic(real, distribution=distribution)
     env = LearnedDynamicsEnv(DeltaDynamicsModel(18, 6), real)
-    planner = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=H)
+    planner = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=horizon)
     collector = Collector(
         real,
         planner,
@@ -157,7 +170,15 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=15, help="alternating rounds")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--no-collection", action="store_true", help="skip the Collector rows")
+    parser.add_argument("--horizon", type=int, default=H, help=f"plan horizon (default {H})")
+    parser.add_argument(
+        "--distribution",
+        choices=("normal", "tanh_normal"),
+        default="normal",
+        help="the PPO actor's distribution (default: normal, the recipes' actor)",
+    )
     args = parser.parse_args()
+    h = args.horizon
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     load_before = os.getloadavg()[0]
@@ -165,24 +186,24 @@ def main() -> None:
     packed_peak = packed_linear_peak_gflops()
     peak = max(mm_peak, packed_peak)
     real = make_half_cheetah_env(seed=0)
-    actor, _ = make_ppo_actor_critic(real)
+    actor, _ = make_ppo_actor_critic(real, distribution=args.distribution)
     model = DeltaDynamicsModel(18, 6)
     data = torch.randn(256, 18)
     model.fit_normalizer(
         data, torch.rand(256, 6) * 2 - 1, data + 0.1 * torch.randn(256, 18), torch.randn(256)
     )
     env = LearnedDynamicsEnv(model, real)
-    flops = plan_flops(model)
+    flops = plan_flops(model, horizon=h)
     previous_cls = previous_planner_class(args.previous)
-    ours = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=H)
-    step_loop = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=H)
+    ours = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=h)
+    step_loop = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=h)
     step_loop.fused_rollout = False
     planners: dict[str, object] = {"ours": ours, "step loop": step_loop}
     if previous_cls is not None:
         planners[f"previous ({args.previous})"] = previous_cls(
-            env, actor, num_candidates=M, horizon=H
+            env, actor, num_candidates=M, horizon=h
         )
-    cem = CEMPlanner(env, planning_horizon=H, optim_steps=1, num_candidates=M, top_k=1)
+    cem = CEMPlanner(env, planning_horizon=h, optim_steps=1, num_candidates=M, top_k=1)
     rows = []
     for batch in args.batches:
         real_b = make_half_cheetah_env(num_envs=batch, seed=0) if batch > 1 else real
@@ -215,7 +236,7 @@ def main() -> None:
             )
     if not args.no_collection:
         for n in (1, 8):
-            fps = collection_fps(n, 1024 if n > 1 else 512)
+            fps = collection_fps(n, 1024 if n > 1 else 512, args.distribution, h)
             rows.append(
                 {"planner": f"PPO-MPC Collector, {n} env(s)", "states": n, "frames_per_s": fps}
             )
@@ -226,12 +247,15 @@ def main() -> None:
         f"{load_after:.1f} on {os.cpu_count()} cores; {args.rounds} alternating rounds"
     )
     print_table(rows)
+    name = "planner" + (f"_h{h}" if h != H else "")
+    name += f"_threads{args.threads}" if args.threads != 1 else ""
+    name += f"_{args.distribution}" if args.distribution != "normal" else ""
     path = write(
-        "planner" if args.threads == 1 else f"planner_threads{args.threads}",
+        name,
         rows,
         {
-            "command": "python benchmarks/planner.py"
-            + ("" if args.threads == 1 else f" --threads {args.threads}"),
+            "command": " ".join(["python benchmarks/planner.py", *sys.argv[1:]]),
+            "actor_distribution": args.distribution,
             "previous_commit": args.previous if previous_cls is not None else None,
             "matmul_peak_gflops": peak,
             "torch_mm_peak_gflops": mm_peak,
@@ -239,7 +263,7 @@ def main() -> None:
             "load_average_1min": [load_before, load_after],
             "plan_mflop_per_state": flops / 1e6,
             "m": M,
-            "h": H,
+            "h": h,
             "rounds": args.rounds,
             "targets": {"ms_per_plan_1_state_1_thread": 1.5},
         },

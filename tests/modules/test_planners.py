@@ -376,6 +376,25 @@ def test_tight_actor_params_follow_weight_updates(real, actor):
     assert torch.equal(sampler.tight_params()[0](obs)[0], sampler.params(obs)[0])
 
 
+def test_tight_params_of_the_tanh_loc_actor_unroll_its_network(real):
+    """The recipes' actor (``distribution="normal"``: tanh of the MLP's output as the mean)."""
+    torch.manual_seed(0)
+    policy, _ = make_ppo_actor_critic(real, distribution="normal", init_log_std=-0.5)
+    sampler = ActorSampler(policy)
+    obs = torch.randn(15, 17)
+    fn, scale = sampler.tight_params()
+    td = policy.module[0](TensorDict(observation=obs, batch_size=[15]))
+    assert torch.equal(fn(obs)[0], td["loc"])  # the same values as the module, bit for bit
+    assert torch.equal(scale.expand_as(td["scale"]), td["scale"])
+    # every layer is unrolled: no module of the network is called by the tight chain
+    calls = []
+    hooks = [m.register_forward_hook(lambda *a: calls.append(1)) for m in policy.modules()]
+    fn(obs)
+    for h in hooks:
+        h.remove()
+    assert calls == []
+
+
 @pytest.mark.parametrize("bounds", [(-1.0, 1.0), (-2.0, 0.5)])
 def test_closed_form_log_prob_matches_distribution(bounds):
     torch.manual_seed(0)

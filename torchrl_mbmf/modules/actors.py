@@ -59,14 +59,35 @@ def _actor(net, observation_key, action_key, action_spec, dist_class, dist_kwarg
     )
 
 
-class _TanhLoc(nn.Module):
-    """Squashes the policy mean with tanh (thesis table 5: "actor output layer activation")."""
+class TanhLoc(nn.Module):
+    """Squashes a network's output with tanh: the thesis' policy mean (its actor output activation).
+
+    Thesis table 5, "actor output layer activation": ``forward(x) = tanh(net(x))``. A module
+    of its own (not ``Sequential(net, Tanh())``) so that the parameter names stay ``net.*``;
+    planners unroll it into ``net``'s layers and a tanh
+    (:class:`~torchrl_mbmf.modules.planners.ActorSampler`).
+
+    Args:
+        net: the network whose output is squashed.
+
+    Examples:
+        >>> import torch
+        >>> from torch import nn
+        >>> from torchrl_mbmf.modules.actors import TanhLoc
+        >>> TanhLoc(nn.Linear(2, 1))(torch.zeros(3, 2)).abs().max() < 1
+        tensor(True)
+    """
 
     def __init__(self, net: nn.Module) -> None:
         super().__init__()
         self.net = net
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``tanh(net(x))``.
+
+        Args:
+            x: the network's input.
+        """
         return torch.tanh(self.net(x))
 
 
@@ -120,7 +141,7 @@ def make_ppo_actor_critic(
     action_dim = action_spec.shape[-1]
     net = _mlp(obs_dim, action_dim, hidden_sizes, activation)
     if distribution == "normal":
-        net = _TanhLoc(net)
+        net = TanhLoc(net)
         dist_class, dist_kwargs = IndependentNormal, {}
     elif distribution == "tanh_normal":
         dist_class, dist_kwargs = TanhNormal, _tanh_normal_kwargs(action_spec)

@@ -13,6 +13,7 @@ from torch import distributions as D
 from torch import nn
 from torchrl.modules import MLP, IndependentNormal, TanhNormal
 
+from torchrl_mbmf.modules.actors import TanhLoc
 from torchrl_mbmf.modules.planners.fast_model import addmm_relu, slot_versions, tensor_slots
 
 ParamsFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -20,7 +21,13 @@ _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 
 def _flat_layers(net: nn.Module) -> list[nn.Module]:
-    """The modules a plain ``Sequential`` (or a non-reshaping torchrl ``MLP``) runs in turn."""
+    """The modules a plain ``Sequential`` (or a non-reshaping torchrl ``MLP``) runs in turn.
+
+    A :class:`~torchrl_mbmf.modules.actors.TanhLoc` unrolls into its network's layers and a
+    ``Tanh``.
+    """
+    if type(net) is TanhLoc:
+        return [*_flat_layers(net.net), nn.Tanh()]
     plain = type(net) is nn.Sequential or (type(net) is MLP and not net._reshape_out)
     if not plain:
         return [net]
@@ -30,8 +37,9 @@ def _flat_layers(net: nn.Module) -> list[nn.Module]:
 def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
     """``layers`` run in turn, with each ``Linear`` as one ``addmm`` on live weights.
 
-    Values equal the modules' own: ``nn.Linear`` on a 2-d input is ``addmm(b, x, W.t())`` and
-    a ReLU right after it runs in place on that fresh output. Other modules are called as is.
+    Values equal the modules' own: ``nn.Linear`` on a 2-d input is ``addmm(b, x, W.t())``, a
+    ReLU right after it runs in place on that fresh output and a ``Tanh`` is ``torch.tanh``.
+    Other modules are called as is.
     """
     ops: list[tuple[str, object, object]] = []
     for m in layers:
@@ -39,6 +47,8 @@ def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
             ops.append(("linear", m.weight.detach().t(), m.bias.detach()))
         elif type(m) is nn.ReLU and ops and ops[-1][0] == "linear":
             ops[-1] = ("linear_relu", *ops[-1][1:])
+        elif type(m) is nn.Tanh:
+            ops.append(("tanh", None, None))
         else:
             ops.append(("call", m, None))
 
@@ -48,6 +58,8 @@ def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
         for kind, a, b in ops:
             if kind == "call":
                 x = a(x)
+            elif kind == "tanh":
+                x = torch.tanh(x)
             elif kind == "linear_relu":
                 x = addmm_relu(b, x, a)
             else:
@@ -161,8 +173,9 @@ class ActorSampler:
         """A tensor-only ``obs [N, d] -> (loc, scale)`` for the current weights, for hot loops.
 
         Available (else ``None``) when the parameter network is a plain ``Sequential`` (or
-        torchrl ``MLP``) chain: its linear layers become single ``addmm`` calls on the live
-        weights, with the same values as the network itself. When the chain ends with an
+        torchrl ``MLP``, or :class:`~torchrl_mbmf.modules.actors.TanhLoc`) chain: its linear
+        layers become single ``addmm`` calls on the live weights, with the same values as the
+        network itself. When the chain ends with an
         :class:`~tensordict.nn.AddStateIndependentNormalScale`, the scale does not depend on
         the observation: it is computed once here and returned as the second element
         (shape ``[action_dim]``, broadcastable), and the function's ``scale`` is that same
