@@ -59,9 +59,13 @@ SMALL_CHECKPOINT_BYTES = 5 * 2**20
 #: continue it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for
 #: PPO. MPC and PPO-MPC hold the dataset while they plan: see :func:`at_risk_seconds`.
 AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 100}
-#: The planning phase of MPC and PPO-MPC: its refits (about 80 min), env steps and updates, and
-#: the planner per step of its horizon (the short-budget h = 10 and h = 25 runs' rates, scaled).
-PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 100, 3.5
+#: The planning phase of MPC and PPO-MPC, in minutes ``fixed + per_step * h``: its four refits
+#: (78-90 min in the h = 10 runs) and, for its 409,600 planning steps, (2.2 + 0.22 h) ms each
+#: (the planner, env steps and PPO updates, measured alone on a core with the other core busy:
+#: 15 + 1.5 h min) times 1.3 for what the session's own work takes from the workers (run it
+#: under ``nice``; the h = 10 runs that shared the cores with profiling and test runs planned
+#: 2-2.7x slower than alone, see NOTES.md).
+PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 110, 2.0
 #: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
 #: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
 #: run whose at-risk part is longer can finish only across sessions that keep one machine.
@@ -202,7 +206,7 @@ def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
     Examples:
         >>> run = QueuedRun("r", "train", ("method=ppo_mpc", "planner.horizon=25"))
         >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=PLANNING_STEPS) / 60
-        (187.5, 0.0)
+        (160.0, 0.0)
     """
     overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
     method = str(overrides.get("method", "ppo_mpc"))
