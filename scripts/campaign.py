@@ -229,6 +229,7 @@ def claim_next(
     stop_at: dt.datetime | None,
     skip: frozenset[str] = frozenset(),
     results: Path | None = None,
+    fallback: bool = True,
 ) -> QueuedRun | None:
     """Claims the next run that is neither done nor running (atomically, under a lock).
 
@@ -237,8 +238,8 @@ def claim_next(
     others, then in queue order. When none fits, a resumable run that continues only if the
     next session has this machine: one interrupted here first, then one whose at-risk part is
     longer than a fresh machine's session (:data:`FRESH_SESSION_MIN`; it can finish in no other
-    way), then the others in queue order. A non-resumable run that would not finish is never
-    started.
+    way), then the others in queue order (``fallback=False``: none of these; the worker
+    stops). A non-resumable run that would not finish is never started.
 
     Args:
         root: the campaign's run root.
@@ -246,6 +247,8 @@ def claim_next(
         stop_at: when the machine's session ends (``None``: never).
         skip: names to pass over (runs that failed in this worker).
         results: where finished runs' committed copies are (a run with a summary there is done).
+        fallback: whether to take a run that continues only if the next session keeps this
+            machine when none fits.
     """
     (root / ".claims").mkdir(parents=True, exist_ok=True)
     with (root / ".claims" / ".lock").open("w") as lock:
@@ -260,10 +263,11 @@ def claim_next(
         first = sorted(open_runs, key=lambda r: r not in here)  # stable: else queue order
         fits = [r for r in first if at_risk_seconds(r, _last_step(root / r.name)) <= left]
         fresh_fits = lambda r: at_risk_seconds(r) <= 60.0 * FRESH_SESSION_MIN  # noqa: E731
+        take_fallback = fallback
         fallback = sorted(
             (r for r in first if r.resumable), key=lambda r: r not in here and fresh_fits(r)
         )
-        for run in (fits or fallback)[:1]:
+        for run in (fits or (fallback if take_fallback else []))[:1]:
             (root / ".claims" / run.name).write_text(f"{os.getpid()}\n")
             return run
     return None
@@ -554,6 +558,12 @@ def main() -> None:
         "--snapshot", action="store_true", help="copy unfinished runs to --results, then exit"
     )
     parser.add_argument("--ledger", type=Path, help="write the run table into this markdown file")
+    parser.add_argument(
+        "--no-fallback",
+        action="store_true",
+        help="when no run fits before --stop-at, stop instead of starting one that only a kept "
+        "machine would finish",
+    )
     args = parser.parse_args()
     root = args.root.resolve()
     root.mkdir(parents=True, exist_ok=True)
@@ -588,7 +598,13 @@ def main() -> None:
         if stop_at < now:  # a session that runs past midnight: the next HH:MM is tomorrow's
             stop_at += dt.timedelta(days=1)
     failed: set[str] = set()
-    while (run := claim_next(root, queue, stop_at, frozenset(failed), args.results)) is not None:
+
+    def next_run() -> QueuedRun | None:
+        return claim_next(
+            root, queue, stop_at, frozenset(failed), args.results, fallback=not args.no_fallback
+        )
+
+    while (run := next_run()) is not None:
         restart = not run.resumable and (root / run.name / "logs").exists()
         code = run_one(root, run, args.results, restart)
         (root / ".claims" / run.name).unlink(missing_ok=True)

@@ -126,6 +126,11 @@ def test_a_run_starts_only_where_what_a_fresh_machine_would_lose_fits_in_the_ses
     assert campaign.claim_next(root, reordered, hours(0.2)).name == "long"
     (root / ".claims" / "long").unlink()
     assert campaign.claim_next(root, reordered[:1], hours(0.2)).name == "tune"
+    (root / ".claims" / "tune").unlink()
+    # without fallbacks, a worker with no run that fits stops
+    assert campaign.claim_next(root, reordered, hours(0.2), fallback=False) is None
+    assert campaign.claim_next(root, reordered, hours(3), fallback=False).name == "long"
+    (root / ".claims" / "long").unlink()
     # neither fits: the run that cannot finish on a fresh machine goes first (h=40, longer than
     # a fresh machine's session), since only a kept machine helps it; the h=10 run waits for
     # a session's start
