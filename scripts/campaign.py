@@ -263,11 +263,11 @@ def claim_next(
         first = sorted(open_runs, key=lambda r: r not in here)  # stable: else queue order
         fits = [r for r in first if at_risk_seconds(r, _last_step(root / r.name)) <= left]
         fresh_fits = lambda r: at_risk_seconds(r) <= 60.0 * FRESH_SESSION_MIN  # noqa: E731
-        take_fallback = fallback
-        fallback = sorted(
-            (r for r in first if r.resumable), key=lambda r: r not in here and fresh_fits(r)
+        kept_only = sorted(  # runs that only a kept machine would finish
+            (r for r in first if r.resumable and fallback),
+            key=lambda r: r not in here and fresh_fits(r),
         )
-        for run in (fits or (fallback if take_fallback else []))[:1]:
+        for run in (fits or kept_only)[:1]:
             (root / ".claims" / run.name).write_text(f"{os.getpid()}\n")
             return run
     return None
