@@ -57,8 +57,10 @@ SMALL_CHECKPOINT_BYTES = 5 * 2**20
 #: Minutes (one core of the busy 2-core machine; the campaign's runs so far, see LEDGER.md) a
 #: run spends before its checkpoints are small enough to commit, so that a fresh machine can
 #: continue it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for
-#: PPO. MPC and PPO-MPC hold the dataset while they plan: see :func:`at_risk_seconds`.
-AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 80, "ppo": 0, "sac": 70, "sac_mpc": 100}
+#: PPO. MPC and PPO-MPC hold the dataset while they plan: see :func:`at_risk_seconds`. SB3 SAC:
+#: 17.2 ms per gradient step alone on a core (a 16,000-step run, 11,000 gradient steps, on
+#: 2026-12-02), so about 57 min for 2e5 steps, with a margin.
+AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac": 70, "sac_mpc": 100}
 #: The planning phase of MPC and PPO-MPC, in minutes ``fixed + per_step * h``: its four refits
 #: (78-90 min in the h = 10 runs) and, for its 409,600 planning steps, (2.2 + 0.22 h) ms each
 #: (the planner, env steps and PPO updates, measured alone on a core with the other core busy:
