@@ -63,11 +63,10 @@ SMALL_CHECKPOINT_BYTES = 5 * 2**20
 AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac": 70, "sac_mpc": 100}
 #: The planning phase of MPC and PPO-MPC, in minutes ``fixed + per_step * h``: its four refits
 #: (78-90 min in the h = 10 runs) and, for its 409,600 planning steps, (2.2 + 0.22 h) ms each
-#: (the planner, env steps and PPO updates, measured alone on a core; a second process on the
-#: other core does not slow it:
-#: 15 + 1.5 h min) times 1.3 for what the session's own work takes from the workers (run it
-#: under ``nice``; the h = 10 runs that shared the cores with profiling and test runs planned
-#: 2-2.7x slower than these rates predict, see NOTES.md).
+#: (the planner, env steps and PPO updates, measured alone on a core, which a second process on
+#: the other core does not slow: 15 + 1.5 h min) times 1.3 for what the session's own work takes
+#: from the workers (run it under ``nice``; the h = 10 runs that shared the cores with profiling
+#: and test runs planned 2-2.7x slower than these rates predict, see NOTES.md).
 PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 110, 2.0
 #: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
 #: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
