@@ -16,10 +16,13 @@ it with one torch thread in ``<root>/<name>``, and when it finishes copies its s
 ``--results/<name>``, with the root's parent folder cut from the paths they mention, so that the
 copy can be committed. Every start, finish and failure is appended to ``<root>/campaign.log``.
 ``--snapshot`` (at a session's end) copies unfinished runs the same way, with their latest
-checkpoint where it is small (PPO, and PPO-MPC once it fine-tunes); a worker on a machine that
-lacks such a run's folder restores it from that copy and resumes it. A run whose committed copy
-holds a summary is done on any machine. ``--ledger`` appends the machine's events to the
-committed ``events.jsonl`` beside the queue and writes the run table from all of them.
+checkpoint: as it is where it is small (PPO, and PPO-MPC once it fine-tunes), with its
+real-transition dataset replaced by the actions that made it where it holds one (MPC and
+PPO-MPC while they plan: :func:`~torchrl_mbmf.trainers.dataset_replay.compact_checkpoint`, a
+few MB); a worker on a machine that lacks such a run's folder restores it from that copy
+(replaying the actions to rebuild the dataset bit for bit) and resumes it. A run whose
+committed copy holds a summary is done on any machine. ``--ledger`` appends the machine's events
+to the committed ``events.jsonl`` beside the queue and writes the run table from all of them.
 """
 
 from __future__ import annotations
@@ -51,30 +54,24 @@ SMALL_FILES = (
     "train.log",
     "sb3_reference.log",
 )
-#: Largest checkpoint committed with a partial run (PPO's are about 0.6 MB; a model-based one holds
-#: its dataset and a SAC one its replay buffer, tens of MB: those are not committed).
+#: Largest checkpoint committed as it is with a partial run (PPO's are about 0.6 MB; a
+#: model-based one holds its dataset and a SAC one its replay buffer, tens of MB).
 SMALL_CHECKPOINT_BYTES = 5 * 2**20
+#: Largest checkpoint committed with its dataset replaced by the actions that made it (about
+#: 3.7 MB of networks and optimisers plus 24 bytes a real step: 14 MB at the end of the planning
+#: phase). A SAC checkpoint keeps its replay buffer and stays larger: it is not committed.
+COMPACT_CHECKPOINT_BYTES = 20 * 2**20
 #: Minutes (one core of the busy 2-core machine; the campaign's runs so far, see LEDGER.md) a
-#: run spends before its checkpoints are small enough to commit, so that a fresh machine can
-#: continue it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for
-#: PPO. MPC and PPO-MPC hold the dataset while they plan: see :func:`at_risk_seconds`. SB3 SAC:
+#: run spends before its checkpoints can be committed, so that a fresh machine can continue
+#: it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for PPO, nor
+#: for MPC and PPO-MPC (their planning checkpoints are committed compacted). SB3 SAC:
 #: 17.2 ms per gradient step alone on a core (a 16,000-step run, 11,000 gradient steps, on
 #: 2026-12-02), so about 57 min for 2e5 steps, with a margin.
 AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac": 70, "sac_mpc": 100}
-#: The planning phase of MPC and PPO-MPC, in minutes ``fixed + per_step * h``: its four refits
-#: (78-90 min in the h = 10 runs) and, for its 409,600 planning steps, (2.2 + 0.22 h) ms each
-#: (the planner, env steps and PPO updates, measured alone on a core, which a second process on
-#: the other core does not slow: 15 + 1.5 h min) times 1.3 for what the session's own work takes
-#: from the workers (run it under ``nice``; the h = 10 runs that shared the cores with profiling
-#: and test runs planned 2-2.7x slower than these rates predict, see NOTES.md).
-PLANNING_FIXED_MIN, PLANNER_MIN_PER_HORIZON_STEP = 110, 2.0
 #: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
 #: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
 #: run whose at-risk part is longer can finish only across sessions that keep one machine.
 FRESH_SESSION_MIN = 165
-#: Real steps of the planning phase (10,000 random + 200 updates of 2,048: the thesis settings,
-#: which every queued run keeps).
-PLANNING_STEPS = 419_600
 
 
 @dataclass(frozen=True)
@@ -197,30 +194,27 @@ def _seconds_left(stop_at: dt.datetime | None) -> float:
 def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
     """Expected wall time until a run's checkpoints can be committed (a fresh machine resumes).
 
-    For MPC and PPO-MPC this is the rest of the planning phase (PPO-MPC's fine-tuning
-    checkpoints leave the dataset out); for SAC, SAC-MPC and SB3 the rest of the run (SB3 runs
-    restart, so ``done_steps`` does not count); for PPO nothing.
+    For SAC, SAC-MPC and SB3 the rest of the run (SB3 runs restart, so ``done_steps`` does not
+    count); for PPO nothing, nor for MPC and PPO-MPC, whose planning checkpoints
+    :func:`snapshot` commits with the dataset replaced by its replay (the steps since the last
+    checkpoint, at most ``checkpoint.every_steps``, are redone).
 
     Args:
         run: the queued run.
         done_steps: the real steps it has already run on this machine.
 
     Examples:
-        >>> run = QueuedRun("r", "train", ("method=ppo_mpc", "planner.horizon=25"))
-        >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=PLANNING_STEPS) / 60
-        (160.0, 0.0)
+        >>> run = QueuedRun("r", "train", ("method=sac", "total_steps=200000"))
+        >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=150_000) / 60
+        (70.0, 17.5)
     """
     overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
     method = str(overrides.get("method", "ppo_mpc"))
     if not run.resumable:
         return 60.0 * AT_RISK_MIN.get(f"sb3_{method}", 120)
     if method in ("mpc", "ppo_mpc"):
-        horizon = int(overrides.get("planner.horizon", 10))
-        risky_steps = min(budget(run), PLANNING_STEPS)
-        minutes = PLANNING_FIXED_MIN + PLANNER_MIN_PER_HORIZON_STEP * horizon
-        minutes *= risky_steps / PLANNING_STEPS  # a shorter budget plans for less
-    else:
-        minutes, risky_steps = AT_RISK_MIN.get(method, 180), budget(run)
+        return 0.0
+    minutes, risky_steps = AT_RISK_MIN.get(method, 180), budget(run)
     left = max(0.0, 1.0 - done_steps / risky_steps) if risky_steps else 0.0
     return 60.0 * minutes * left
 
@@ -344,13 +338,49 @@ def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
         dest = results / run.name
         copy_small_files(folder, dest, str(root.parent) + os.sep)
         latest = latest_checkpoint(folder)
+        target = None if latest is None else dest / "checkpoints" / latest.name
         if latest is not None and _size(latest) <= SMALL_CHECKPOINT_BYTES:
-            shutil.copytree(latest, dest / "checkpoints" / latest.name)
+            shutil.copytree(latest, target)
+        elif latest is not None and (latest / "manifest.json").exists():
+            _compact(folder, latest, target)
+        if target is not None and target.exists():
             # the world-model fits so far, which the finished run's fit evaluation reads
             for fit in sorted((folder / "world_models").glob("fit-*")):
                 shutil.copytree(fit, dest / "world_models" / fit.name)
         copied.append(run.name)
     return copied
+
+
+def _run_env(folder: Path) -> tuple[object, int]:
+    """A fresh copy of a run's real env (from its ``config.yaml``) and the run's seed."""
+    from omegaconf import OmegaConf
+
+    from torchrl_mbmf.trainers.build import make_train_env
+
+    cfg = OmegaConf.load(folder / "config.yaml")
+    return make_train_env(cfg, int(cfg.seed)), int(cfg.seed)
+
+
+def _compact(folder: Path, checkpoint: Path, target: Path) -> bool:
+    """Writes ``checkpoint`` compacted to ``target`` if it fits :data:`COMPACT_CHECKPOINT_BYTES`."""
+    from torchrl_mbmf.trainers.dataset_replay import compact_checkpoint
+
+    try:
+        env, seed = _run_env(folder)
+        compact_checkpoint(checkpoint, target, env, seed=seed)
+    except Exception as err:  # a run that cannot be compacted is copied without a checkpoint
+        shutil.rmtree(target, ignore_errors=True)
+        print(f"{folder.name}: {checkpoint.name} not compacted: {err}", file=sys.stderr)
+        return False
+    if _size(target) > COMPACT_CHECKPOINT_BYTES:
+        print(
+            f"{folder.name}: {checkpoint.name} is {_size(target):,} bytes even compacted "
+            f"(more than {COMPACT_CHECKPOINT_BYTES:,}): not committed",
+            file=sys.stderr,
+        )
+        shutil.rmtree(target)
+        return False
+    return True
 
 
 def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
@@ -382,10 +412,40 @@ def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
             staging = root / f".{run.name}.restoring"
             shutil.rmtree(staging, ignore_errors=True)
             shutil.copytree(copy, staging)
+            checkpoint = latest_checkpoint(staging)
+            try:
+                replayed = _expand(staging, checkpoint)
+            except Exception as err:  # the run starts again from 0, as a lost one
+                shutil.rmtree(staging)
+                step = int(checkpoint.name.removeprefix("checkpoint-"))
+                why = f"its committed checkpoint did not rebuild: {err}"
+                _log(root, event="lost", run=run.name, real_steps=step, why=why)
+                print(f"{run.name}: {why}", file=sys.stderr)
+                continue
             staging.rename(root / run.name)  # whole, or not at all
-            _log(root, event="restored", run=run.name, checkpoint=latest_checkpoint(copy).name)
+            _log(
+                root,
+                event="restored",
+                run=run.name,
+                checkpoint=checkpoint.name,
+                **({"replayed": True} if replayed else {}),
+            )
             restored.append(run.name)
     return restored
+
+
+def _expand(folder: Path, checkpoint: Path) -> bool:
+    """Rebuilds a compacted checkpoint's dataset in place (``False``: it held none to rebuild)."""
+    if not (checkpoint / "manifest.json").exists():
+        return False
+    manifest = json.loads((checkpoint / "manifest.json").read_text())
+    paths = [entry["path"] for entry in manifest.get("components", {}).values()]
+    if not any((checkpoint / path / "replay").is_dir() for path in paths):
+        return False
+    from torchrl_mbmf.trainers.dataset_replay import expand_checkpoint
+
+    env, _ = _run_env(folder)
+    return expand_checkpoint(checkpoint, env)
 
 
 def run_one(root: Path, run: QueuedRun, results: Path | None, restart: bool) -> int:
@@ -526,6 +586,8 @@ def ledger_table(
         if not (root / run.name).exists() and (folder / "logs").exists():
             # only the committed copy: done, or lost with the machine (restarts from 0)
             state = "done" if (folder / "summary.json").exists() else "lost, restarts"
+            if state != "done" and latest_checkpoint(folder) is not None:
+                state = "interrupted, resumes from its committed checkpoint"
         mine = [e for e in events if e.get("run") == run.name]
         starts = [e for e in mine if e["event"] == "start"]
         prior = [e for e in mine if e["event"] == "prior"]

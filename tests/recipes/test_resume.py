@@ -264,3 +264,36 @@ def test_a_planning_checkpoint_without_its_dataset_is_refused(tmp_path):
     proc = _run(run, *LOG_CFG)
     assert proc.returncode != 0
     assert "holds no dataset, which a run at its progress (phase 'planning') needs" in proc.stderr
+
+
+def test_a_planning_checkpoint_compacted_to_its_replay_resumes_exactly(
+    tmp_path, straight_run, straight_logs
+):
+    """What a fresh machine gets from a committed planning checkpoint (its dataset replaced by
+    the actions that made it, as ``scripts/campaign.py --snapshot`` commits it) continues the
+    run exactly: the dataset is rebuilt bit for bit by replaying the actions."""
+    from omegaconf import OmegaConf
+
+    from torchrl_mbmf.trainers.build import make_train_env
+    from torchrl_mbmf.trainers.checkpointing import CheckpointIntegrityError, verify_checkpoint
+    from torchrl_mbmf.trainers.dataset_replay import compact_checkpoint, expand_checkpoint
+
+    run = tmp_path / "run"
+    _kill_when(run, lambda: _checkpoint(run, 620).exists() and _rows_after(run, 620), *LOG_CFG)
+    planning = _checkpoint(run, 620)
+    assert "dataset" in _manifest_components(planning)
+    cfg = OmegaConf.load(run / "config.yaml")
+    fresh = tmp_path / "fresh" / "run"
+    shutil.copytree(run, fresh, ignore=shutil.ignore_patterns("checkpoints"))
+    compacted = _checkpoint(fresh, 620)
+    compact_checkpoint(planning, compacted, make_train_env(cfg, int(cfg.seed)), seed=int(cfg.seed))
+    dataset = compacted / "components" / "0000-dataset"
+    assert sorted(p.name for p in dataset.iterdir()) == ["replay"]
+    with pytest.raises(CheckpointIntegrityError, match=r"integrity\.json"):
+        verify_checkpoint(compacted)  # not resumable until rebuilt
+    assert expand_checkpoint(compacted, make_train_env(cfg, int(cfg.seed))) is True
+    verify_checkpoint(compacted)  # every file as the run saved it
+    _resume_and_compare_logs(fresh, straight_logs)
+    resumed = json.loads((fresh / "summary.json").read_text())
+    reference = json.loads((straight_run / "summary.json").read_text())
+    assert resumed["params_sha256"] == reference["params_sha256"]

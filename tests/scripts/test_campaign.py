@@ -98,52 +98,47 @@ def test_failed_runs_and_unresumable_runs_without_time_are_passed_over(tmp_path)
 def test_a_run_starts_only_where_what_a_fresh_machine_would_lose_fits_in_the_session(tmp_path):
     queue = _queue(
         tmp_path,
-        "long train method=ppo_mpc planner.horizon=40 total_steps=419600 seed=0\n"
         "sac train method=sac total_steps=200000 seed=0\n"
+        "sb3 sb3_reference method=sac seed=0\n"
         "tune train method=ppo_mpc seed=0\n"
+        "plan train method=mpc planner.horizon=25 total_steps=419600 seed=0\n"
         "ppo train method=ppo seed=0\n",
     )
     minutes = [campaign.at_risk_seconds(run) / 60 for run in queue]
-    assert minutes == [190, 70, 130, 0]  # h=40 planning, SAC, h=10 planning, PPO
+    # SAC keeps a replay buffer, SB3 cannot resume; MPC and PPO-MPC planning checkpoints are
+    # committed compacted (their dataset replaced by its replay), PPO's as they are
+    assert minutes == [70, 70, 0, 0, 0]
     root = tmp_path / "runs"
     hours = lambda h: dt.datetime.now(dt.UTC) + dt.timedelta(hours=h)  # noqa: E731
-    assert campaign.claim_next(root, queue, hours(3)).name == "sac"  # h=40 would be lost
-    assert campaign.claim_next(root, queue, hours(3)).name == "tune"
-    assert campaign.claim_next(root, queue, hours(3)).name == "ppo"
-    for name in ("sac", "tune", "ppo"):
+    assert [campaign.claim_next(root, queue, hours(3)).name for _ in range(3)] == [
+        "sac",
+        "sb3",
+        "tune",
+    ]
+    for name in ("sac", "sb3", "tune"):
         (root / ".claims" / name).unlink()
-    assert campaign.claim_next(root, queue, hours(0.5)).name == "ppo"  # only PPO is safe
-    (root / ".claims" / "ppo").unlink()
-    # the h=40 run, interrupted on this machine at 300,000 steps: 54 minutes of it left
-    steps = root / "long" / "logs" / "scalars" / "train"
-    steps.mkdir(parents=True)
-    (steps / "episode_return.csv").write_text("300000,1.0\n")
-    assert campaign.at_risk_seconds(queue[0], 300_000) / 60 == pytest.approx(54.1, abs=0.1)
-    assert campaign.claim_next(root, queue, hours(1.5)).name == "long"
-    (root / ".claims" / "long").unlink()
-    # nothing fits: the run interrupted here goes before an earlier one that has not started
-    reordered = [queue[2], queue[0]]  # tune (not started), long (interrupted here)
-    assert campaign.claim_next(root, reordered, hours(0.2)).name == "long"
-    (root / ".claims" / "long").unlink()
-    assert campaign.claim_next(root, reordered[:1], hours(0.2)).name == "tune"
+    assert campaign.claim_next(root, queue, hours(0.5)).name == "tune"  # neither SAC fits
     (root / ".claims" / "tune").unlink()
-    # without fallbacks, a worker with no run that fits stops
-    assert campaign.claim_next(root, reordered, hours(0.2), fallback=False) is None
-    assert campaign.claim_next(root, reordered, hours(3), fallback=False).name == "long"
-    (root / ".claims" / "long").unlink()
-    # neither fits: the run that cannot finish on a fresh machine goes first (h=40, longer than
-    # a fresh machine's session), since only a kept machine helps it; the h=10 run waits for
-    # a session's start
-    assert campaign.at_risk_seconds(queue[0]) > 60 * campaign.FRESH_SESSION_MIN
-    assert campaign.at_risk_seconds(queue[2]) < 60 * campaign.FRESH_SESSION_MIN
+    # the SAC run, interrupted on this machine at 150,000 steps: 17.5 minutes of it left
+    steps = root / "sac" / "logs" / "scalars" / "train"
+    steps.mkdir(parents=True)
+    (steps / "episode_return.csv").write_text("150000,1.0\n")
+    assert campaign.at_risk_seconds(queue[0], 150_000) / 60 == pytest.approx(17.5)
+    assert campaign.claim_next(root, queue, hours(0.5)).name == "sac"  # fits, and kept here
+    (root / ".claims" / "sac").unlink()
+    # nothing fits: a resumable run continues only if the next session keeps this machine
+    # (a fallback); an SB3 run that would not finish is never started
+    sac_only = [queue[1], queue[0]]
+    assert campaign.claim_next(root, sac_only, hours(0.1)).name == "sac"
+    (root / ".claims" / "sac").unlink()
+    assert campaign.claim_next(root, sac_only, hours(0.1), fallback=False) is None
+    assert campaign.claim_next(root, queue[1:2], hours(0.1)) is None
+    # among fallbacks, one interrupted here goes before one not started
     fresh = tmp_path / "fresh"
-    assert campaign.claim_next(fresh, reordered, hours(1)).name == "long"
-    assert campaign.claim_next(fresh, reordered, hours(1)).name == "tune"
-    short = campaign.QueuedRun("s", "train", ("method=ppo_mpc", "total_steps=104900"))
-    assert campaign.at_risk_seconds(short) / 60 == pytest.approx(130 / 4)
-    # the thesis' longest horizon fits in a fresh machine's session
-    h25 = campaign.QueuedRun("h25", "train", ("method=ppo_mpc", "planner.horizon=25"))
-    assert campaign.at_risk_seconds(h25) / 60 == 160 <= campaign.FRESH_SESSION_MIN
+    sac_mpc = campaign.QueuedRun("sm", "train", ("method=sac_mpc", "total_steps=200000"))
+    (fresh / "sac" / "logs").mkdir(parents=True)
+    assert campaign.claim_next(fresh, [sac_mpc, queue[0]], hours(0.1)).name == "sac"
+    assert campaign.claim_next(fresh, [sac_mpc, queue[0]], hours(0.1)).name == "sm"
 
 
 def test_runs_interrupted_here_that_fit_go_before_the_queue_order(tmp_path):
@@ -229,6 +224,68 @@ def test_snapshot_keeps_small_checkpoints_and_a_fresh_machine_restores_them(tmp_
     assert (results / "a" / "summary.json").exists()
     done = campaign.ledger_table(root, queue, results).splitlines()[2]
     assert done.startswith("| a | done | 3,000 |")
+
+
+TINY_PLANNING = [
+    "method=ppo_mpc",
+    "env=pendulum",
+    "total_steps=620",  # ends with the planning phase: its last checkpoint holds the dataset
+    "planning_updates=2",
+    "ppo.frames_per_batch=160",
+    "world_model.random_steps=300",
+    "world_model.max_epochs=2",
+    "world_model.hidden_sizes=[32,32]",
+    "eval_episodes=0",
+    "checkpoint.every_steps=400",
+    "progress=false",
+]
+
+
+def test_a_planning_checkpoint_is_committed_compacted_and_rebuilt_on_a_fresh_machine(
+    tmp_path, monkeypatch
+):
+    from torchrl_mbmf.trainers.checkpointing import verify_checkpoint
+
+    root = tmp_path / "machine1" / "runs"
+    run = root / "p"
+    run.parent.mkdir(parents=True)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "train.py"), *TINY_PLANNING, f"run_dir={run}"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (run / "summary.json").unlink()  # as if the session ended before the run did
+    checkpoint = campaign.latest_checkpoint(run)
+    assert checkpoint.name == "checkpoint-000000000620"
+    queue = _queue(tmp_path, "p train method=ppo_mpc\n")
+    results = tmp_path / "results"
+    monkeypatch.setattr(campaign, "SMALL_CHECKPOINT_BYTES", 0)  # the real ones are tens of MB
+    assert campaign.snapshot(root, queue, results) == ["p"]
+    copy = results / "p" / "checkpoints" / checkpoint.name
+    assert sorted(p.name for p in (copy / "components" / "0000-dataset").iterdir()) == ["replay"]
+    assert campaign._size(copy) < campaign._size(checkpoint)
+    table = campaign.ledger_table(tmp_path / "elsewhere", queue, results)
+    row = table.splitlines()[2].split(" | ")
+    assert row[1] == "interrupted, resumes from its committed checkpoint" and row[4] == "620"
+    # a fresh machine rebuilds the dataset by replaying the actions: every file as saved
+    fresh = tmp_path / "machine2" / "runs"
+    assert campaign.restore(fresh, queue, results) == ["p"]
+    restored = fresh / "p" / "checkpoints" / checkpoint.name
+    verify_checkpoint(restored)
+    assert (restored / "integrity.json").read_text() == (checkpoint / "integrity.json").read_text()
+    assert "replayed" in (fresh / "campaign.log").read_text()
+    # a committed replay that does not rebuild leaves no folder: the run starts again from 0
+    actions = copy / "components" / "0000-dataset" / "replay" / "actions.bin"
+    actions.write_bytes(actions.read_bytes()[:-4])
+    third = tmp_path / "machine3" / "runs"
+    assert campaign.restore(third, queue, results) == []
+    assert not (third / "p").exists()
+    lost = [e for e in campaign._events(third) if e["event"] == "lost"]
+    assert lost[0]["real_steps"] == 620 and "did not rebuild" in lost[0]["why"]
+    assert campaign.run_state(third, queue[0], results) == "queued"
 
 
 def test_the_ledger_keeps_every_machines_events_and_each_runs_budget(tmp_path):

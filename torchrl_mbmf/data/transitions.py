@@ -389,19 +389,7 @@ class TransitionDataset:
         try:
             if len(self):
                 self.tensors().select(*self.keys).memmap(tmp / _BUFFER_DIR)
-            meta = {
-                **self.metadata,
-                "format": _FORMAT,
-                "num_transitions": len(self),
-                "capacity": self.capacity,
-                "next_traj": self._next_traj,
-                "open_traj": None if self._open_traj is None else self._open_traj.tolist(),
-                "keys": [list(k) if isinstance(k, tuple) else k for k in self.keys],
-                "package_version": torchrl_mbmf.__version__,
-            }
-            # the checksum is taken over the metadata as it will be read back (JSON types)
-            meta = json.loads(json.dumps(meta))
-            meta["sha256"] = self._checksum(meta)
+            meta = self.record()
             (tmp / _META_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True))
             if path.exists():
                 old = path.with_name(path.name + ".old")
@@ -415,6 +403,40 @@ class TransitionDataset:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         return path
+
+    def record(self) -> dict[str, Any]:
+        """The metadata :meth:`save` writes (``metadata.json``), with the checksum of the data.
+
+        The provenance, the format, the counts, the trajectory-id state, the stored keys, the
+        package version and a SHA-256 over all of them and every stored tensor:
+        :meth:`from_record` rebuilds the dataset from this record and the tensors and checks
+        them against it.
+
+        Returns:
+            A JSON-compatible dict (its ``"sha256"`` entry is the checksum).
+
+        Examples:
+            >>> from torchrl_mbmf.data import collect_random_transitions
+            >>> from torchrl_mbmf.envs import make_gym_state_env
+            >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 30, seed=0)
+            >>> record = data.record()
+            >>> record["num_transitions"], len(record["sha256"])
+            (30, 64)
+        """
+        meta = {
+            **self.metadata,
+            "format": _FORMAT,
+            "num_transitions": len(self),
+            "capacity": self.capacity,
+            "next_traj": self._next_traj,
+            "open_traj": None if self._open_traj is None else self._open_traj.tolist(),
+            "keys": [list(k) if isinstance(k, tuple) else k for k in self.keys],
+            "package_version": torchrl_mbmf.__version__,
+        }
+        # the checksum is taken over the metadata as it will be read back (JSON types)
+        meta = json.loads(json.dumps(meta))
+        meta["sha256"] = self._checksum(meta)
+        return meta
 
     def dumps(self, path: str | os.PathLike) -> None:
         """Saves into ``path`` for ``torchrl.checkpoint`` (same files as :meth:`save`)."""
@@ -472,38 +494,78 @@ class TransitionDataset:
             meta = json.loads(meta_file.read_text())
         except json.JSONDecodeError as err:
             raise CorruptDatasetError(f"{meta_file} is not valid JSON: {err}") from err
-        if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
-            found = meta.get("format") if isinstance(meta, dict) else None
-            hint = (
-                " (written by an older version whose checksum did not cover the metadata: "
-                "collect or save it again)"
-                if found == "torchrl_mbmf.transitions/1"
-                else ""
-            )
-            raise CorruptDatasetError(f"{path} has format {found!r}, expected {_FORMAT!r}{hint}")
-        required = ("num_transitions", "sha256", "keys", "next_traj", "open_traj")
-        missing = [k for k in required if k not in meta]
-        if missing:
-            raise CorruptDatasetError(f"{meta_file} lacks the entries {missing}")
+        keys = _check_record(meta, str(meta_file), str(path))
+        stored = None
+        if int(meta["num_transitions"]):
+            try:
+                # JSON and raw tensor files only: nothing stored is ever unpickled
+                stored = load_tensor_folder(path / _BUFFER_DIR, keys=keys)
+            except UnsafeFolderError as err:
+                raise CorruptDatasetError(f"cannot read the buffer of {path}: {err}") from err
+            absent = [k for k in keys if k not in stored.keys(True, True)]
+            if absent:
+                raise CorruptDatasetError(
+                    f"cannot read the buffer of {path}: "
+                    f"{path / _BUFFER_DIR / 'meta.json'} lacks the entries {absent}"
+                )
+        return cls.from_record(
+            meta,
+            stored,
+            expect=expect,
+            capacity=capacity,
+            scratch_dir=scratch_dir,
+            source=str(path),
+        )
+
+    @classmethod
+    def from_record(
+        cls,
+        record: Mapping[str, Any],
+        stored: TensorDictBase | None,
+        *,
+        expect: Mapping[str, Any] | None = None,
+        capacity: int | None = None,
+        scratch_dir: str | os.PathLike | None = None,
+        source: str = "the record",
+    ) -> TransitionDataset:
+        """A dataset from its :meth:`record` and its stored tensors, checked against the record.
+
+        :meth:`load` reads both from a saved folder; a dataset rebuilt another way (for
+        example by replaying its actions in the real env,
+        :class:`~torchrl_mbmf.trainers.dataset_replay.DatasetReplay`) is checked the same way:
+        the tensors and the record must match the record's checksum.
+
+        Args:
+            record: the metadata of :meth:`record` (``metadata.json``).
+            stored: the ``[N]`` transitions (:attr:`keys`; ``None`` when ``N`` is 0).
+
+        Keyword Args:
+            expect: metadata entries that must match. Defaults to no check.
+            capacity: capacity of the dataset. Defaults to the recorded one or ``N``, whichever
+                is larger.
+            scratch_dir: folder of the memory-mapped files. Defaults to a temporary folder.
+            source: what the error messages call the data. Defaults to ``"the record"``.
+
+        Returns:
+            The dataset.
+
+        Raises:
+            CorruptDatasetError: if the record is invalid, the tensors are not ``N``
+                transitions, or either fails the checksum.
+            DatasetMismatchError: if an ``expect`` entry differs.
+
+        Examples:
+            >>> from torchrl_mbmf.data import TransitionDataset, collect_random_transitions
+            >>> from torchrl_mbmf.envs import make_gym_state_env
+            >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 30, seed=0)
+            >>> copy = TransitionDataset.from_record(data.record(), data.tensors().clone())
+            >>> len(copy), copy.record()["sha256"] == data.record()["sha256"]
+            (30, True)
+        """
+        meta = dict(record)
+        keys = _check_record(meta, source, source)
         n = int(meta["num_transitions"])
-        provenance = {
-            k: v
-            for k, v in meta.items()
-            if k
-            not in (
-                "format",
-                "num_transitions",
-                "capacity",
-                "next_traj",
-                "open_traj",
-                "sha256",
-                "keys",
-                "package_version",
-            )
-        }
-        keys = [tuple(k) if isinstance(k, list) else k for k in meta["keys"]]
-        if len(keys) != 6 or not isinstance(keys[3], tuple) or len(keys[3]) != 2:
-            raise CorruptDatasetError(f"{meta_file} has an invalid key list {meta['keys']!r}")
+        provenance = {k: v for k, v in meta.items() if k not in _RECORD_ONLY}
         data = cls(
             provenance,
             capacity=max(capacity or int(meta.get("capacity", 0)), n, 1),
@@ -514,36 +576,63 @@ class TransitionDataset:
         )
         data.metadata["package_version"] = meta.get("package_version")
         if n:
-            try:
-                # JSON and raw tensor files only: nothing stored is ever unpickled
-                stored = load_tensor_folder(path / _BUFFER_DIR, keys=data.keys)
-            except UnsafeFolderError as err:
-                raise CorruptDatasetError(f"cannot read the buffer of {path}: {err}") from err
+            if stored is None or stored.batch_size != (n,):
+                found = None if stored is None else tuple(stored.batch_size)
+                raise CorruptDatasetError(
+                    f"{source} holds {found} transitions, its metadata says {n}"
+                )
             absent = [k for k in data.keys if k not in stored.keys(True, True)]
             if absent:
-                raise CorruptDatasetError(
-                    f"cannot read the buffer of {path}: "
-                    f"{path / _BUFFER_DIR / 'meta.json'} lacks the entries {absent}"
-                )
-            if stored.batch_size != (n,):
-                raise CorruptDatasetError(
-                    f"{path} holds {tuple(stored.batch_size)} transitions, its metadata says {n}"
-                )
-            data.buffer.extend(stored)
+                raise CorruptDatasetError(f"{source} lacks the entries {absent}")
+            data.buffer.extend(stored.select(*data.keys))
         if data._checksum(meta) != meta["sha256"]:
             raise CorruptDatasetError(
-                f"{path}: stored transitions or metadata do not match their checksum"
+                f"{source}: stored transitions or metadata do not match their checksum"
             )
         for key, value in (expect or {}).items():
             if meta.get(key) != value:
                 raise DatasetMismatchError(
-                    f"dataset at {path} was collected with {key}={meta.get(key)!r}, "
+                    f"dataset at {source} was collected with {key}={meta.get(key)!r}, "
                     f"expected {key}={value!r}; collect new data for this configuration"
                 )
         data._next_traj = int(meta["next_traj"])
         if meta["open_traj"] is not None:
             data._open_traj = torch.tensor(meta["open_traj"], dtype=torch.long)
         return data
+
+
+#: Entries of a dataset's record that describe the stored data, not its provenance.
+_RECORD_ONLY = (
+    "format",
+    "num_transitions",
+    "capacity",
+    "next_traj",
+    "open_traj",
+    "sha256",
+    "keys",
+    "package_version",
+)
+
+
+def _check_record(meta: Any, where: str, source: str) -> list[NestedKey]:
+    """The stored keys of a dataset record; raises on a record of another format or shape."""
+    if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else None
+        hint = (
+            " (written by an older version whose checksum did not cover the metadata: "
+            "collect or save it again)"
+            if found == "torchrl_mbmf.transitions/1"
+            else ""
+        )
+        raise CorruptDatasetError(f"{source} has format {found!r}, expected {_FORMAT!r}{hint}")
+    required = ("num_transitions", "sha256", "keys", "next_traj", "open_traj")
+    missing = [k for k in required if k not in meta]
+    if missing:
+        raise CorruptDatasetError(f"{where} lacks the entries {missing}")
+    keys = [tuple(k) if isinstance(k, list) else k for k in meta["keys"]]
+    if len(keys) != 6 or not isinstance(keys[3], tuple) or len(keys[3]) != 2:
+        raise CorruptDatasetError(f"{where} has an invalid key list {meta['keys']!r}")
+    return keys
 
 
 def collect_random_transitions(
