@@ -608,6 +608,30 @@ def ledger_table(
     return "\n".join(lines) + "\n"
 
 
+def parse_stop_at(text: str, now: dt.datetime) -> dt.datetime:
+    """The moment ``HH:MM`` (UTC) names: today's, or tomorrow's when today's passed long ago.
+
+    A time that passed less than 12 hours ago is today's, so a worker started just after its
+    session's stop time claims nothing; one that passed longer ago is tomorrow's (a session
+    that runs past midnight).
+
+    Args:
+        text: ``HH:MM``.
+        now: the current time (aware, UTC).
+
+    Examples:
+        >>> import datetime as dt
+        >>> now = dt.datetime(2026, 12, 3, 9, 46, tzinfo=dt.UTC)
+        >>> parse_stop_at("09:45", now).day, parse_stop_at("01:00", now).day
+        (3, 4)
+    """
+    hour, minute = (int(x) for x in text.split(":"))
+    stop_at = now.replace(hour=hour, minute=minute, second=0, microsecond=0)
+    if stop_at < now - dt.timedelta(hours=12):
+        stop_at += dt.timedelta(days=1)
+    return stop_at
+
+
 def main() -> None:
     """Command line: one worker, or ``--status``."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -654,13 +678,7 @@ def main() -> None:
         return
     if args.results is not None:
         restore(root, queue, args.results)
-    stop_at = None
-    if args.stop_at:
-        hour, minute = (int(x) for x in args.stop_at.split(":"))
-        now = dt.datetime.now(dt.UTC)
-        stop_at = now.replace(hour=hour, minute=minute, second=0, microsecond=0)
-        if stop_at < now:  # a session that runs past midnight: the next HH:MM is tomorrow's
-            stop_at += dt.timedelta(days=1)
+    stop_at = parse_stop_at(args.stop_at, dt.datetime.now(dt.UTC)) if args.stop_at else None
     failed: set[str] = set()
 
     def next_run() -> QueuedRun | None:

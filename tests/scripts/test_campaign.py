@@ -312,3 +312,16 @@ def test_the_ledger_keeps_every_machines_events_and_each_runs_budget(tmp_path):
     events = campaign.merge_events(root, history)
     row = campaign.ledger_table(root, queue, None, events).splitlines()[4]
     assert "| c | queued (lost at 69,000 with its machine, restarted from 0) | 0 |" in row
+
+
+def test_a_stop_time_just_passed_is_todays_and_one_long_past_is_tomorrows(tmp_path):
+    now = dt.datetime(2026, 12, 3, 9, 46, tzinfo=dt.UTC)
+    assert campaign.parse_stop_at("09:45", now) == now.replace(minute=45)  # nothing is started
+    assert campaign.parse_stop_at("12:30", now) == now.replace(hour=12, minute=30)
+    late = dt.datetime(2026, 12, 3, 23, 10, tzinfo=dt.UTC)  # a session past midnight
+    assert campaign.parse_stop_at("01:30", late) == dt.datetime(2026, 12, 4, 1, 30, tzinfo=dt.UTC)
+    # a worker without fallbacks, started after its stop time, takes nothing
+    queue = _queue(tmp_path, "p train method=ppo_mpc seed=0\n")
+    stop = campaign.parse_stop_at("09:45", now)  # in the past for any real clock now
+    assert stop < dt.datetime.now(dt.UTC)
+    assert campaign.claim_next(tmp_path / "runs", queue, stop, fallback=False) is None
