@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import fcntl
+import hashlib
 import json
 import os
 import shlex
@@ -344,11 +345,48 @@ def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
         elif latest is not None and (latest / "manifest.json").exists():
             _compact(folder, latest, target)
         if target is not None and target.exists():
+            relocate_checkpoint(target, str(root), ROOT_MARK)  # no path of this machine
             # the world-model fits so far, which the finished run's fit evaluation reads
             for fit in sorted((folder / "world_models").glob("fit-*")):
                 shutil.copytree(fit, dest / "world_models" / fit.name)
         copied.append(run.name)
     return copied
+
+
+#: What a committed checkpoint's JSON files say in place of the machine's run root.
+ROOT_MARK = "<run root>"
+
+
+def relocate_checkpoint(checkpoint: Path, old: str, new: str) -> None:
+    """Replaces ``old`` by ``new`` in a checkpoint's JSON files and updates their integrity entries.
+
+    The ``progress`` and ``logger`` components record the run folder's absolute path; the
+    snapshot writes :data:`ROOT_MARK` there instead, and a restore writes its own run root.
+
+    Args:
+        checkpoint: the checkpoint folder.
+        old: the text to replace.
+        new: its replacement.
+    """
+    record_file = checkpoint / "integrity.json"
+    if not record_file.exists():
+        return
+    record = json.loads(record_file.read_text())
+    changed = False
+    for path in sorted(checkpoint.rglob("*.json")):
+        if path == record_file or path.parent.name == "replay":
+            continue
+        text = path.read_text()
+        if old not in text:
+            continue
+        path.write_text(text.replace(old, new))
+        name = path.relative_to(checkpoint).as_posix()
+        if name in record["files"]:
+            data = path.read_bytes()
+            record["files"][name] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+            changed = True
+    if changed:
+        record_file.write_text(json.dumps(record, indent=1, sort_keys=True))
 
 
 def _run_env(folder: Path) -> tuple[object, int]:
@@ -413,6 +451,7 @@ def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
             shutil.rmtree(staging, ignore_errors=True)
             shutil.copytree(copy, staging)
             checkpoint = latest_checkpoint(staging)
+            relocate_checkpoint(checkpoint, ROOT_MARK, str(root))
             try:
                 replayed = _expand(staging, checkpoint)
             except Exception as err:  # the run starts again from 0, as a lost one
