@@ -45,7 +45,7 @@ def test_state_holds_the_positions_the_layout_names(env_id):
     assert torch.equal(obs, state[keep])
     # the state is Gymnasium's observation with the positions kept: one more dim per position
     plain = gym.make(env_id).observation_space.shape[-1]
-    assert state.shape[-1] == plain + len(layout.hidden_dims)
+    assert state.shape[-1] == plain + len(layout.hidden_dims) == layout.state_dim
 
 
 @pytest.mark.parametrize("env_id", CONFIG_TASKS)

@@ -28,6 +28,7 @@ class TaskLayout:
 
     Attributes:
         env_id: the Gymnasium id.
+        state_dim: size of the state built with ``gym_kwargs`` (and the task's other defaults).
         x_index: state index of the x position (forward progress, or a cart's position), or
             ``None`` when the state has none.
         y_index: state index of the y position, or ``None``.
@@ -40,11 +41,12 @@ class TaskLayout:
     Examples:
         >>> from torchrl_mbmf.envs.tasks import task_layout
         >>> layout = task_layout("Ant-v5")
-        >>> layout.x_index, layout.y_index, layout.hidden_dims
-        (0, 1, (0, 1))
+        >>> layout.state_dim, layout.x_index, layout.y_index, layout.hidden_dims
+        (107, 0, 1, (0, 1))
     """
 
     env_id: str
+    state_dim: int
     x_index: int | None
     y_index: int | None = None
     hidden_dims: tuple[int, ...] = ()
@@ -81,14 +83,14 @@ class TaskLayout:
         return merged
 
 
-def _planar(env_id: str, *, terminates: bool = False) -> TaskLayout:
+def _planar(env_id: str, state_dim: int, *, terminates: bool = False) -> TaskLayout:
     """A task moving in the plane: x and y first, both hidden from the policy."""
-    return TaskLayout(env_id, 0, 1, (0, 1), _WITH_POSITIONS, terminates)
+    return TaskLayout(env_id, state_dim, 0, 1, (0, 1), _WITH_POSITIONS, terminates)
 
 
-def _forward(env_id: str, *, terminates: bool = False) -> TaskLayout:
+def _forward(env_id: str, state_dim: int, *, terminates: bool = False) -> TaskLayout:
     """A task moving along x: x first, hidden from the policy."""
-    return TaskLayout(env_id, 0, None, (0,), _WITH_POSITIONS, terminates)
+    return TaskLayout(env_id, state_dim, 0, None, (0,), _WITH_POSITIONS, terminates)
 
 
 #: The layout of every task whose state this package knows (Gymnasium 1.x ids). The carts of
@@ -98,18 +100,18 @@ TASK_LAYOUTS: Mapping[str, TaskLayout] = MappingProxyType(
     {
         layout.env_id: layout
         for layout in (
-            _planar("Ant-v5", terminates=True),
-            _forward("HalfCheetah-v5"),
-            _forward("Hopper-v5", terminates=True),
-            _planar("Humanoid-v5", terminates=True),
-            _planar("HumanoidStandup-v5"),
-            TaskLayout("InvertedDoublePendulum-v5", 0, terminates=True),
-            TaskLayout("InvertedPendulum-v5", 0, terminates=True),
-            TaskLayout("Pusher-v5", None),
-            TaskLayout("Reacher-v5", None),
-            _planar("Swimmer-v5"),
-            _forward("Walker2d-v5", terminates=True),
-            TaskLayout("Pendulum-v1", None),
+            _planar("Ant-v5", 107, terminates=True),  # with the contact forces (v5 default)
+            _forward("HalfCheetah-v5", 18),
+            _forward("Hopper-v5", 12, terminates=True),
+            _planar("Humanoid-v5", 350, terminates=True),
+            _planar("HumanoidStandup-v5", 350),
+            TaskLayout("InvertedDoublePendulum-v5", 9, 0, terminates=True),
+            TaskLayout("InvertedPendulum-v5", 4, 0, terminates=True),
+            TaskLayout("Pusher-v5", 23, None),
+            TaskLayout("Reacher-v5", 10, None),
+            _planar("Swimmer-v5", 10),
+            _forward("Walker2d-v5", 18, terminates=True),
+            TaskLayout("Pendulum-v1", 3, None),
         )
     }
 )
