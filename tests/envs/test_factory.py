@@ -183,3 +183,30 @@ def test_action_bounds_need_one_bounded_range():
     env.action_spec = Unbounded((3,))
     with pytest.raises(ValueError, match="needs a Bounded action spec"):
         action_bounds(env)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "bounds"),
+    [("Pendulum-v1", (-2.0, 2.0)), ("InvertedPendulum-v5", (-3.0, 3.0)), ("Hopper-v5", (-1, 1))],
+)
+@pytest.mark.parametrize("ensemble_size", [1, 2])
+def test_recipe_world_model_takes_the_env_action_range(env_id, bounds, ensemble_size):
+    from torchrl_mbmf.trainers.planning import make_world_model
+
+    env = make_env(env_id)
+    model = make_world_model(env, hidden_sizes=[8], ensemble_size=ensemble_size)
+    assert (model.action_low, model.action_high) == bounds
+    # the largest action and half of it are different inputs to the model: nothing clips them
+    state = env.reset()["state"][None]
+    high = torch.full((1, *env.action_spec.shape), bounds[1])
+    assert not torch.equal(model(state, high)[0], model(state, high / 2)[0])
+
+
+def test_recipe_world_model_refuses_a_float64_state_naming_double_to_float():
+    from torchrl.envs import RenameTransform
+
+    from torchrl_mbmf.trainers.planning import make_world_model
+
+    env = TransformedEnv(GymEnv("Hopper-v5"), RenameTransform(["observation"], ["state"]))
+    with pytest.raises(ValueError, match=r"'state' is torch.float64.*DoubleToFloat\(\)"):
+        make_world_model(env, hidden_sizes=[8])
