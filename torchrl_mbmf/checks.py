@@ -7,6 +7,12 @@ import os
 from pathlib import Path
 from typing import Any
 
+__all__ = ["ConfigError", "check_multi_step", "check_multi_step_weight", "check_number"]
+
+
+class ConfigError(ValueError):
+    """A training config value is invalid; the message names the key and the allowed values."""
+
 
 def check_number(
     value: Any, key: str, *, minimum: float, integer: bool = False, note: str = ""

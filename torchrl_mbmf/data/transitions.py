@@ -568,7 +568,7 @@ class TransitionDataset:
 
         :meth:`load` reads both from a saved folder; a dataset rebuilt another way (for
         example by replaying its actions in the real env,
-        :class:`~torchrl_mbmf.trainers.dataset_replay.DatasetReplay`) is checked the same way:
+        :class:`~torchrl_mbmf.runs.dataset_replay.DatasetReplay`) is checked the same way:
         the tensors and the record must match the record's checksum.
 
         Args:

@@ -17,11 +17,14 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from torchrl_mbmf.envs.factory import make_env
+from torchrl_mbmf.methods import PPO_METHODS
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
-from torchrl_mbmf.trainers.config import PPO_METHODS
+from torchrl_mbmf.runs.layout import CONFIG, POLICY
+
+__all__ = ["POLICY_FILE", "load_policy", "save_policy", "variant_tag"]
 
 #: File name of the exported policy inside a run folder.
-POLICY_FILE = "policy.pt"
+POLICY_FILE = POLICY
 
 
 def save_policy(actor: torch.nn.Module, run_dir: str | Path, step: int) -> Path:
@@ -37,7 +40,7 @@ def save_policy(actor: torch.nn.Module, run_dir: str | Path, step: int) -> Path:
 
     Examples:
         >>> import tempfile, torch
-        >>> from torchrl_mbmf.trainers.export import save_policy
+        >>> from torchrl_mbmf.runs.export import save_policy
         >>> with tempfile.TemporaryDirectory() as d:
         ...     save_policy(torch.nn.Linear(2, 2), d, step=10).name
         'policy.pt'
@@ -67,14 +70,14 @@ def load_policy(
         FileNotFoundError: the folder has no ``config.yaml`` or ``policy.pt``.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.export import load_policy
+        >>> from torchrl_mbmf.runs.export import load_policy
         >>> actor, env, info = load_policy("outputs/short/run")  # doctest: +SKIP
     """
     run_dir = Path(run_dir)
-    for name in ("config.yaml", POLICY_FILE):
+    for name in (CONFIG, POLICY_FILE):
         if not (run_dir / name).exists():
             raise FileNotFoundError(f"{run_dir} has no {name}; is it a finished training run?")
-    cfg = OmegaConf.load(run_dir / "config.yaml")
+    cfg = OmegaConf.load(run_dir / CONFIG)
     if env is None:
         env = make_env(
             cfg.env.id,
@@ -110,7 +113,7 @@ def variant_tag(planner: Any, world_model: Any | None = None) -> str:
         ``""`` for the thesis' settings, otherwise ``"__"`` and the options joined by ``-``.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.export import variant_tag
+        >>> from torchrl_mbmf.runs.export import variant_tag
         >>> variant_tag({"terminal_value": False, "refinement": None})
         ''
         >>> variant_tag({"terminal_value": True, "refinement": "cem"})
