@@ -16,6 +16,7 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_mbmf.trainers import Trainer
+from torchrl_mbmf.trainers.progress import end_of_run_message
 from torchrl_mbmf.trainers.sac import keep_freed_memory
 
 log = logging.getLogger("train")
@@ -30,6 +31,7 @@ def main(cfg: DictConfig) -> None:
     # folder is always cfg.run_dir so that a restarted job finds its checkpoints.
     summary = Trainer(cfg, Path(cfg.run_dir)).train()
     log.info("summary: %s", json.dumps(summary))
+    print(end_of_run_message(summary, cfg.run_dir))
 
 
 if __name__ == "__main__":
