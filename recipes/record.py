@@ -2,6 +2,7 @@
 
 python recipes/record.py run_dir=outputs/short/HalfCheetah-v5__ppo_mpc__default__h10__seed0
 python recipes/record.py run_dir=... seconds=5 width=480 height=320 out=cheetah.mp4
+python recipes/record.py run_dir=... planner=true    # the run's planner acting: planner.mp4
 The policy (policy.pt, weights only) acts deterministically in the run's env; MuJoCo renders
 through EGL or OSMesa, chosen before it is imported (MUJOCO_GL if set).
 """
@@ -36,11 +37,13 @@ def main(cfg: DictConfig) -> None:
         width=int(cfg.width),
         height=int(cfg.height),
         seed=None if cfg.seed is None else int(cfg.seed),
+        planner=bool(cfg.planner),
     )
     log.info(
-        "%s: %.0f s of the policy trained on %d real steps (return %.1f), MUJOCO_GL=%s, %d KB",
+        "%s: %.0f s of the %s trained on %d real steps (return %.1f), MUJOCO_GL=%s, %d KB",
         path,
         cfg.seconds,
+        "planner with the policy" if cfg.planner else "policy",
         info["real_steps"],
         info["return"],
         backend,

@@ -118,3 +118,44 @@ def test_non_mujoco_runs_are_refused(tmp_path):
 
     with pytest.raises(ValueError, match="Pendulum-v1 is not a MuJoCo task"):
         render_policy(tmp_path, seconds=1)
+
+
+def test_planner_video_of_a_tiny_ppo_mpc_run(tmp_path):
+    """The planner acts over the run's last fit: other actions than the policy's alone."""
+    from torchrl_mbmf.offscreen import _probe
+
+    backend = os.environ.get("MUJOCO_GL")
+    if backend is None or _probe(backend, 60.0) is not None:
+        pytest.skip(f"MUJOCO_GL={backend} does not render here")
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_mbmf.analysis.video import render_policy
+    from torchrl_mbmf.trainers import Trainer
+
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose(
+            "train",
+            overrides=[
+                "method=ppo_mpc",
+                "total_steps=264",
+                "world_model.random_steps=200",
+                "world_model.max_epochs=1",
+                "planning_updates=1",
+                "ppo.frames_per_batch=64",
+                "planner.num_candidates=4",
+                "planner.horizon=3",
+                "eval_episodes=0",
+                "progress=false",
+                f"run_dir={tmp_path}",
+            ],
+        )
+    Trainer(cfg, tmp_path).train()
+    policy_frames, policy_info = render_policy(tmp_path, seconds=0.5, width=32, height=32)
+    frames, info = render_policy(tmp_path, seconds=0.5, width=32, height=32, planner=True)
+    assert frames.shape == policy_frames.shape == (10, 32, 32, 3)
+    assert info["return"] != policy_info["return"]
+    with pytest.raises(ValueError, match="is a ppo run: it has no planner"):
+        (tmp_path / "config.yaml").write_text(
+            (tmp_path / "config.yaml").read_text().replace("method: ppo_mpc", "method: ppo")
+        )
+        render_policy(tmp_path, seconds=0.5, planner=True)

@@ -14,9 +14,12 @@ chosen before MuJoCo is imported (:func:`~torchrl_mbmf.offscreen.choose_gl_backe
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
 
 from torchrl_mbmf.offscreen import choose_gl_backend
 
@@ -31,6 +34,54 @@ __all__ = [
 TRACKING_CAMERA = "track"
 
 
+def _run_planner(
+    run_dir: Path, cfg: Any, env: EnvBase, actor: TensorDictModuleBase, seed: int
+) -> TensorDictModuleBase:
+    """The run's MPC planner over its last world-model fit, for :func:`render_policy`."""
+    from torchrl_mbmf.envs import LearnedDynamicsEnv
+    from torchrl_mbmf.modules import (
+        DeltaDynamicsModel,
+        PolicyGuidedMPCPlanner,
+        RandomShootingMPCPlanner,
+    )
+    from torchrl_mbmf.trainers.fit_records import fit_snapshots, load_fit_snapshot
+
+    if cfg.method not in ("mpc", "ppo_mpc", "sac_mpc"):
+        raise ValueError(f"{run_dir} is a {cfg.method} run: it has no planner to record")
+    wm, pl = cfg.world_model, cfg.planner
+    if int(wm.get("ensemble_size", 1) or 1) > 1 or pl.get("terminal_value", False):
+        raise ValueError(
+            f"{run_dir} planned with an ensemble or a terminal value; recording its planner "
+            "needs a single world model and the policy alone"
+        )
+    snapshots = fit_snapshots(run_dir)
+    if not snapshots:
+        raise ValueError(f"{run_dir} kept no world-model fit (world_models/fit-*) to plan with")
+    state_dim = env.observation_spec["state"].shape[-1]
+    model = DeltaDynamicsModel(
+        state_dim, env.action_spec.shape[-1], hidden_sizes=tuple(int(h) for h in wm.hidden_sizes)
+    )
+    load_fit_snapshot(model, snapshots[-1][1])
+    model_env = LearnedDynamicsEnv(model.eval(), env)
+    common = {
+        "num_candidates": int(pl.num_candidates),
+        "horizon": int(pl.horizon),
+        "discount": float(pl.discount),
+    }
+    torch.manual_seed(seed)  # the planner's candidates
+    if cfg.method == "mpc":
+        return RandomShootingMPCPlanner(model_env, actor=actor, **common)
+    refinement = {}
+    if pl.get("refinement"):
+        refinement = {
+            k: pl[k]
+            for k in ("iterations", "num_elites", "policy_fraction", "temperature", "min_std")
+        }
+    return PolicyGuidedMPCPlanner(
+        model_env, actor, refinement=pl.get("refinement"), **refinement, **common
+    )
+
+
 def render_policy(
     run_dir: str | Path,
     *,
@@ -38,8 +89,13 @@ def render_policy(
     width: int = 320,
     height: int = 240,
     seed: int | None = None,
+    planner: bool = False,
 ) -> tuple[np.ndarray, dict[str, float]]:
     """Runs a run's exported policy (deterministic) in its env and renders every step.
+
+    With ``planner=True`` the run's MPC planner acts instead: the run's settings
+    (``planner.*``) over its last world-model fit (``world_models/fit-*``), with the policy
+    as the planner's prior (random shooting for ``mpc``).
 
     The rollout lasts ``seconds`` of simulated time (``seconds x fps`` env steps, ``fps`` the
     env's real-time rate, e.g. 20 for HalfCheetah's 0.05 s step).
@@ -52,6 +108,7 @@ def render_policy(
         width: frame width in pixels. Defaults to ``320``.
         height: frame height in pixels. Defaults to ``240``.
         seed: env seed; by default the run's evaluation seed (``seed + 1000``).
+        planner: the planner acts instead of the policy. Defaults to ``False``.
 
     The camera is the model's ``track`` camera (the gymnasium locomotion tasks' side view that
     follows the body) where it has one.
@@ -61,7 +118,9 @@ def render_policy(
         ``real_steps`` the policy was trained on, and the env's ``fps`` (real time).
 
     Raises:
-        ValueError: ``seconds``, ``width`` or ``height`` not positive, or a non-MuJoCo env.
+        ValueError: ``seconds``, ``width`` or ``height`` not positive, or a non-MuJoCo env;
+            with ``planner``, a run without a planner, a fit snapshot, or with planner options
+            that need more than the policy and one model (ensemble, terminal value).
 
     Examples:
         >>> from torchrl_mbmf.analysis.video import render_policy
@@ -97,6 +156,7 @@ def render_policy(
     )
     fps = float(env.base_env._env.unwrapped.metadata.get("render_fps") or 30)
     actor, env, info = load_policy(run_dir, env=env)
+    policy = _run_planner(run_dir, cfg, env, actor, seed) if planner else actor
     env.append_transform(PixelRenderTransform(preproc=lambda a: torch.from_numpy(a.copy())))
     # The transform's spec is found by resetting the env and rendering: compute it now, not in
     # the middle of the rollout, then start from the seed's first reset (as the plain env does).
@@ -106,7 +166,7 @@ def render_policy(
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(
             max(1, round(seconds * fps)),
-            actor,
+            policy,
             tensordict=start,
             auto_reset=False,
             break_when_any_done=False,
@@ -183,18 +243,23 @@ def record_policy(
     width: int = 320,
     height: int = 240,
     seed: int | None = None,
+    planner: bool = False,
 ) -> tuple[Path, dict[str, float]]:
     """Renders a run's exported policy to ``run_dir/policy.mp4`` (or ``out``), in real time.
 
+    With ``planner=True`` the run's planner acts (:func:`render_policy`), by default into
+    ``run_dir/planner.mp4``.
+
     Args:
         run_dir: a run folder with ``config.yaml`` and ``policy.pt``.
-        out: the video file. Defaults to ``run_dir/policy.mp4``.
+        out: the video file. Defaults to ``run_dir/policy.mp4`` (``planner.mp4``).
 
     Keyword Args:
         seconds: video length at the env's real-time frame rate. Defaults to ``10``.
         width: frame width in pixels. Defaults to ``320``.
         height: frame height in pixels. Defaults to ``240``.
         seed: env seed; by default the run's evaluation seed.
+        planner: the run's planner acts instead of the policy. Defaults to ``False``.
 
     Returns:
         The path written and :func:`render_policy`'s ``info``.
@@ -204,7 +269,9 @@ def record_policy(
         >>> path, info = record_policy("outputs/short/run", seconds=2)  # doctest: +SKIP
     """
     choose_gl_backend()
-    frames, info = render_policy(run_dir, seconds=seconds, width=width, height=height, seed=seed)
-    run_dir = Path(run_dir)
-    path = write_mp4(frames, run_dir / "policy.mp4" if out is None else out, fps=info["fps"])
+    frames, info = render_policy(
+        run_dir, seconds=seconds, width=width, height=height, seed=seed, planner=planner
+    )
+    default = Path(run_dir) / ("planner.mp4" if planner else "policy.mp4")
+    path = write_mp4(frames, default if out is None else out, fps=info["fps"])
     return path, info
