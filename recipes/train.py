@@ -16,8 +16,8 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_mbmf.trainers import Trainer
+from torchrl_mbmf.trainers.device import keep_freed_memory
 from torchrl_mbmf.trainers.progress import end_of_run_message
-from torchrl_mbmf.trainers.sac import keep_freed_memory
 
 log = logging.getLogger("train")
 

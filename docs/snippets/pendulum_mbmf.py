@@ -19,7 +19,7 @@ print(real.observation_spec["state"].shape, real.action_spec.shape)  # (3,) stat
 # --8<-- [start:model]
 from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.modules import DeltaDynamicsModel
-from torchrl_mbmf.trainers import fit_dynamics
+from torchrl_mbmf.world_model import fit_dynamics
 
 data = collect_random_transitions(real, 1000, seed=0)  # real steps: count them in the budget
 model = DeltaDynamicsModel(3, 1, hidden_sizes=(64, 64))

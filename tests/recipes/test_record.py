@@ -99,7 +99,7 @@ def test_rendering_does_not_change_the_rollout():
 
     from torchrl_mbmf.analysis.video import render_policy
     from torchrl_mbmf.envs import make_env
-    from torchrl_mbmf.trainers.export import load_policy
+    from torchrl_mbmf.runs.export import load_policy
 
     frames, info = render_policy(RUN, seconds=1, width=32, height=32, seed=7)
     assert frames.shape == (20, 32, 32, 3) and frames.dtype == np.uint8

@@ -1,7 +1,7 @@
 """Videos of a run's exported policy: offscreen MuJoCo rendering to an ``.mp4``.
 
 The policy acts in the run's own env (env id, reward, seed from its ``config.yaml``, rebuilt
-by :func:`~torchrl_mbmf.trainers.export.load_policy`, weights only), each step rendered by
+by :func:`~torchrl_mbmf.runs.export.load_policy`, weights only), each step rendered by
 gymnasium's MuJoCo renderer through torchrl's :class:`~torchrl.record.PixelRenderTransform`,
 and the frames are encoded with ``imageio-ffmpeg`` (a wheel that ships its own ``ffmpeg``).
 
@@ -44,7 +44,7 @@ def _run_planner(
         PolicyGuidedMPCPlanner,
         RandomShootingMPCPlanner,
     )
-    from torchrl_mbmf.trainers.fit_records import fit_snapshots, load_fit_snapshot
+    from torchrl_mbmf.world_model.snapshots import fit_snapshots, load_fit_snapshot
 
     if cfg.method not in ("mpc", "ppo_mpc", "sac_mpc"):
         raise ValueError(f"{run_dir} is a {cfg.method} run: it has no planner to record")
@@ -132,7 +132,7 @@ def render_policy(
     from torchrl.record import PixelRenderTransform
 
     from torchrl_mbmf.envs import make_env
-    from torchrl_mbmf.trainers.export import load_policy
+    from torchrl_mbmf.runs.export import load_policy
 
     for name, value in (("seconds", seconds), ("width", width), ("height", height)):
         if not value > 0:
