@@ -100,12 +100,24 @@ def test_predict_matches_step(cheetah, model):
     torch.testing.assert_close(env.observation(nxt), nxt[..., 1:])
 
 
-def test_reset_without_state_starts_at_zero(cheetah, model):
-    env = LearnedDynamicsEnv(model, cheetah)
+def test_reset_without_state_starts_from_real_initial_states(model):
+    real = make_half_cheetah_env(seed=3)
+    env = LearnedDynamicsEnv(model, real)
     td = env.reset()
-    assert (td[STATE_KEY] == 0).all()
+    # HalfCheetah's initial state: qpos noise U(-0.1, 0.1), qvel noise 0.1 N(0, 1): never zero
+    assert td[STATE_KEY].shape == (18,) and bool((td[STATE_KEY] != 0).any())
+    assert float(td[STATE_KEY][:9].abs().max()) <= 0.1
     td = env.reset(TensorDict(batch_size=[4]))
     assert td[STATE_KEY].shape == (4, 18)
+    assert len({tuple(s.tolist()) for s in td[STATE_KEY]}) == 4  # four different resets
+    # the same initial states as the real env's own resets under the same seed
+    real.set_seed(7)
+    first = env.reset(TensorDict(batch_size=[2]))[STATE_KEY]
+    real.set_seed(7)
+    torch.testing.assert_close(first[0], real.reset()[STATE_KEY])
+    torch.testing.assert_close(first[1], real.reset()[STATE_KEY])
+    rollout = env.rollout(3)
+    assert not bool((rollout[STATE_KEY][0] == 0).all())
 
 
 def test_pendulum_without_dropped_dims():
@@ -128,3 +140,46 @@ def test_errors_name_the_mismatch(cheetah, model):
     env = LearnedDynamicsEnv(model, cheetah)
     with pytest.raises(ValueError, match="last dim 5"):
         env.reset(TensorDict(state=torch.zeros(2, 5), batch_size=[2]))
+
+
+def _standing_still(state_dim: int, action_dim: int) -> DeltaDynamicsModel:
+    """A model whose every prediction is ``s' = s`` with reward 0."""
+    model = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=(8,))
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.zero_()
+    return model
+
+
+@pytest.fixture(scope="module")
+def hopper():
+    return make_gym_state_env("Hopper-v5", seed=0, exclude_current_positions_from_observation=False)
+
+
+def test_hopper_terminations_follow_the_task_rule(hopper):
+    env = LearnedDynamicsEnv(_standing_still(12, 3), hopper)
+    check_env_specs(env)
+    start = hopper.reset().expand(3).clone()
+    start[STATE_KEY][:, 1] = torch.tensor([1.25, 0.5, 1.25])  # height: fine, fallen, fine
+    start[STATE_KEY][2, 2] = 0.3  # torso angle beyond 0.2
+    start[OBSERVATION_KEY] = env.observation(start[STATE_KEY])
+    td = env.step(env.reset(start).set("action", torch.zeros(3, 3)))
+    expected = torch.tensor([[False], [True], [True]])
+    assert torch.equal(td["next", "terminated"], expected)
+    assert torch.equal(td["next", "done"], expected)
+    assert not env.never_terminates
+
+
+def test_termination_fn_argument_and_its_checks(cheetah, model):
+    assert LearnedDynamicsEnv(model, cheetah).never_terminates
+    env = LearnedDynamicsEnv(
+        _standing_still(18, 6), cheetah, termination_fn=lambda s: s[..., 0] > 1.0
+    )
+    start = cheetah.reset().expand(2).clone()
+    start[STATE_KEY][:, 0] = torch.tensor([0.0, 2.0])
+    td = env.step(env.reset(start).set("action", torch.zeros(2, 6)))
+    assert td["next", "terminated"][:, 0].tolist() == [False, True]
+    with pytest.raises(ValueError, match="bool tensor"):
+        LearnedDynamicsEnv(model, cheetah, termination_fn=lambda s: s[..., 0])
+    with pytest.raises(TypeError, match="termination_fn"):
+        LearnedDynamicsEnv(model, cheetah, termination_fn=3)
