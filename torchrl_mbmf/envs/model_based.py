@@ -319,6 +319,18 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
 
         return step
 
+    def steps_as_its_model(self) -> bool:
+        """Whether a step is exactly :meth:`predict` then :meth:`terminated` (planners' fast path).
+
+        ``False`` for a subclass that overrides ``_step``, :meth:`predict` or the way it fills
+        the step's entries: the planners then roll out through ``env.rollout``.
+        """
+        cls = type(self)
+        base = LearnedDynamicsEnv
+        return all(
+            getattr(cls, name) is getattr(base, name) for name in ("_step", "predict", "_fill")
+        )
+
     @property
     def never_terminates(self) -> bool:
         """Whether ``termination_fn`` is the rule of a task without terminal states."""

@@ -142,6 +142,7 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             and cls.rollout is ShootingPlanner.rollout
             and cls.candidate_source is ShootingPlanner.candidate_source
             and cls.transition is ShootingPlanner.transition
+            and cls.horizon_mask is ShootingPlanner.horizon_mask
             and type(self._model_step) is CachedModelStep
         )
 
