@@ -86,7 +86,9 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         value_key: output key of ``value_module``. Defaults to ``"state_value"``.
         discount: discount of the score. Defaults to ``1.0`` (the thesis' plain sum).
         action_key: action key. Defaults to ``"action"``.
-        log_prob_key: key of the chosen action's log-prob. Defaults to ``"action_log_prob"``.
+        log_prob_key: key of the chosen action's log-prob. Defaults to ``None``: the actor's
+            own ``log_prob_key`` (what TorchRL's losses built on that actor read), else
+            ``"action_log_prob"``.
         stats_key: key under which ``best_return`` and ``mean_return`` of the candidates are
             written, or ``None``. Defaults to ``"planner"``.
 
@@ -115,7 +117,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         value_key: NestedKey = "state_value",
         discount: float = 1.0,
         action_key: NestedKey = "action",
-        log_prob_key: NestedKey = "action_log_prob",
+        log_prob_key: NestedKey | None = None,
         stats_key: NestedKey | None = "planner",
     ) -> None:
         for name, value in (("num_candidates", num_candidates), ("horizon", horizon)):
@@ -133,7 +135,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         self.discount = float(discount)
         self.value_module = value_module
         self.value_key = value_key
-        self.log_prob_key = log_prob_key
         self.stats_key = stats_key
         spec = env.full_action_spec_unbatched[action_key]
         if not isinstance(spec, Bounded) or spec.domain != "continuous":
@@ -153,6 +154,9 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         if actor is not None:
             self.sampler = ActorSampler(actor)
             self._check_actor_size()
+        if log_prob_key is None:
+            log_prob_key = "action_log_prob" if self.sampler is None else self.sampler.log_prob_key
+        self.log_prob_key = log_prob_key
         self.fused_rollout = True
         self.policy_rollout: PolicyRollout | None = None
         out_keys = [action_key]
