@@ -183,3 +183,22 @@ def test_termination_fn_argument_and_its_checks(cheetah, model):
         LearnedDynamicsEnv(model, cheetah, termination_fn=lambda s: s[..., 0])
     with pytest.raises(TypeError, match="termination_fn"):
         LearnedDynamicsEnv(model, cheetah, termination_fn=3)
+
+
+def test_action_bounds_come_from_the_env():
+    pendulum = make_gym_state_env("Pendulum-v1", seed=0)  # actions in [-2, 2]
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+    assert model.action_bounds is None  # no clip of its own by default
+    s = torch.zeros(1, 3)
+    # without bounds the model tells 2.0 from 1.0
+    assert not torch.equal(model(s, torch.full((1, 1), 2.0))[0], model(s, torch.ones(1, 1))[0])
+    LearnedDynamicsEnv(model, pendulum)
+    assert model.action_bounds == (-2.0, 2.0)  # adopted from the spec
+    torch.testing.assert_close(model(s, torch.full((1, 1), 5.0)), model(s, torch.full((1, 1), 2.0)))
+    LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, action_low=-2.0, action_high=2.0), pendulum)
+    with pytest.raises(ValueError, match=r"\[-1.0, 1.0\].*'action' spec is \[-2.0, 2.0\]"):
+        LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, action_low=-1.0, action_high=1.0), pendulum)
+    inverted = make_gym_state_env("InvertedPendulum-v5", seed=0)  # actions in [-3, 3]
+    model = DeltaDynamicsModel(4, 1, hidden_sizes=(8,))
+    LearnedDynamicsEnv(model, inverted)
+    assert model.action_bounds == (-3.0, 3.0)

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Literal
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.model_based import ModelBasedEnvBase
 
@@ -69,6 +70,34 @@ def _check_termination_fn(fn: TerminationFn, state_dim: int) -> None:
         )
 
 
+def _adopt_action_bounds(
+    model: DeltaDynamicsModel, spec: TensorSpec, action_key: NestedKey
+) -> None:
+    """Sets the model's action clip to the env's action spec, or refuses other bounds."""
+    if not isinstance(spec, Bounded):
+        return
+    low, high = spec.space.low.flatten(), spec.space.high.flatten()
+    uniform = bool((low == low[0]).all() and (high == high[0]).all())
+    env_bounds = f"[{low.tolist()}, {high.tolist()}]" if not uniform else None
+    if uniform:
+        env_bounds = f"[{float(low[0])}, {float(high[0])}]"
+    own = model.action_bounds
+    if own is None:
+        if uniform:  # per-dimension bounds: the model keeps no clip of its own
+            model.set_action_bounds(float(low[0]), float(high[0]))
+        return
+    same = uniform and all(
+        math.isclose(a, float(b), rel_tol=1e-6, abs_tol=1e-7)
+        for a, b in zip(own, (low[0], high[0]), strict=True)
+    )
+    if not same:
+        raise ValueError(
+            f"the world model clips actions to [{own[0]}, {own[1]}] but the real env's "
+            f"{action_key!r} spec is {env_bounds}: build the model with the env's bounds "
+            "(action_low/action_high), or with none (the learned env then adopts the spec)"
+        )
+
+
 class _RealStarts:
     """Start states drawn from the real env's ``reset`` (shared, not copied, with the env)."""
 
@@ -114,6 +143,10 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
     InvertedDoublePendulum; never for HalfCheetah, Pendulum and the other tasks without terminal
     states; a warning and never for an unknown task). The planners stop each candidate's score
     at its first terminal step.
+
+    **Action bounds.** The model's action clip is the env's action spec: a model built without
+    bounds (the default of :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`) adopts the
+    spec's (uniform) bounds, a model with other bounds is refused with both named.
 
     **Start states.** ``reset`` with a tensordict holding ``state_key`` starts there; without
     one (``env.rollout(n)``, ``check_env_specs``) it resets the real env given at construction
@@ -234,6 +267,7 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
                 f"the real env's {action_key!r} has shape {tuple(action_spec.shape)}, the world "
                 f"model expects action_dim={world_model.action_dim}"
             )
+        _adopt_action_bounds(world_model, action_spec, action_key)
         if termination_fn is None:
             termination_fn = termination_rule_of_env(env)
         _check_termination_fn(termination_fn, world_model.state_dim)
