@@ -202,3 +202,39 @@ def test_action_bounds_come_from_the_env():
     model = DeltaDynamicsModel(4, 1, hidden_sizes=(8,))
     LearnedDynamicsEnv(model, inverted)
     assert model.action_bounds == (-3.0, 3.0)
+
+
+def test_plain_gym_env_any_keys():
+    from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
+
+    from torchrl_mbmf.modules import PolicyGuidedMPCPlanner, make_ppo_actor_critic
+
+    real = GymEnv("Pendulum-v1")  # one "observation" entry: the state is what the policy reads
+    env = LearnedDynamicsEnv(
+        DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real, state_key="observation"
+    )
+    assert env.observation_key is None
+    check_env_specs(env)
+    actor, _ = make_ppo_actor_critic(real, hidden_sizes=(8,))
+    planner = PolicyGuidedMPCPlanner(env, actor, num_candidates=4, horizon=3)
+    td = real.rollout(3, planner)
+    assert td["action"].shape == (3, 1) and bool((td["action"].abs() <= 2).all())
+    # a float64 env is refused with the transform that fixes it
+    hopper = GymEnv("Hopper-v5", exclude_current_positions_from_observation=False)
+    with pytest.raises(TypeError, match="DoubleToFloat"):
+        LearnedDynamicsEnv(DeltaDynamicsModel(12, 3), hopper, state_key="observation")
+    hopper = TransformedEnv(hopper, DoubleToFloat())
+    env = LearnedDynamicsEnv(
+        DeltaDynamicsModel(12, 3, hidden_sizes=(8,)),
+        hopper,
+        state_key="observation",
+        observation_key=None,
+    )
+    check_env_specs(env)
+    assert not env.never_terminates  # Hopper's rule found through the transform
+    renamed = make_gym_state_env("Pendulum-v1", state_key="s", observation_key="obs")
+    env = LearnedDynamicsEnv(
+        DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), renamed, state_key="s", observation_key="obs"
+    )
+    check_env_specs(env)
+    assert set(env.observation_spec.keys()) == {"s", "obs"}

@@ -182,7 +182,8 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         state_key: key of the model state. Defaults to :data:`~torchrl_mbmf.envs.STATE_KEY`.
         observation_key: key of the policy observation, or ``None`` if the policy reads the
             state itself. Defaults to :data:`~torchrl_mbmf.envs.OBSERVATION_KEY` (``None`` is
-            used automatically when the real env has no such entry).
+            used automatically when the real env has no such entry or when it is the state
+            key, as on a plain ``GymEnv`` with ``state_key="observation"``).
         action_key: action key. Defaults to ``"action"``.
         reward_key: reward key. Defaults to ``"reward"``.
         observation_fn: maps a state tensor to the policy observation. Defaults to the real
@@ -256,6 +257,13 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
                 f"its entries are {sorted(map(str, obs_spec.keys(True, True)))}"
             )
         state_spec = obs_spec[state_key]
+        model_dtype = next(world_model.parameters()).dtype
+        if state_spec.dtype != model_dtype:
+            raise TypeError(
+                f"the real env's {state_key!r} is {state_spec.dtype}, the world model computes in "
+                f"{model_dtype}: add torchrl.envs.DoubleToFloat() to the real env (or build the "
+                "model in its dtype)"
+            )
         if state_spec.shape[-1:] != (world_model.state_dim,):
             raise ValueError(
                 f"the real env's {state_key!r} has shape {tuple(state_spec.shape)}, the world "
@@ -273,8 +281,10 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         _check_termination_fn(termination_fn, world_model.state_dim)
         self.termination_fn = termination_fn
         self._starts = _RealStarts(env, state_key)
-        if observation_key is not None and observation_key not in obs_spec.keys(True):
-            observation_key = None
+        if observation_key is not None and (
+            observation_key not in obs_spec.keys(True) or observation_key == state_key
+        ):
+            observation_key = None  # the policy reads the state itself
         self.observation_key = observation_key
         self._observation_fn: Callable[[torch.Tensor], torch.Tensor] | None = None
         # A learned model may predict outside the real env's observation bounds: unbounded specs.
@@ -303,7 +313,12 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
             shape=bs,
         )
-        if disagreement_key in (state_key, observation_key, action_key, reward_key):
+        if disagreement_key is not None and disagreement_key in (
+            state_key,
+            observation_key,
+            action_key,
+            reward_key,
+        ):
             raise ValueError(f"disagreement_key={disagreement_key!r} collides with another key")
         self.member_assignment = member_assignment
         self.disagreement_key = disagreement_key
