@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _common import print_table, write
 from rl_helpers import make_test_ppo
 
-from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
+from torchrl_mbmf.objectives.fused_ppo import FusedPPOUpdate, ppo_update
 
 ENV = "HalfCheetah-v5"
 

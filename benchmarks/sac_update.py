@@ -36,12 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _common import print_table, write
 from rl_helpers import make_test_sac_loss
 
-from torchrl_mbmf.trainers.sac import (
-    FusedSACUpdate,
-    ReplaySampler,
-    keep_freed_memory,
-    sac_update_step,
-)
+from torchrl_mbmf.data import ReplaySampler
+from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
+from torchrl_mbmf.trainers.device import keep_freed_memory
 
 OBS, ACT, HIDDEN, BATCH = 17, 6, 256, 256
 

@@ -28,12 +28,12 @@ from rl_helpers import make_test_sac_loss
 
 from torchrl_mbmf.envs import make_env
 from torchrl_mbmf.modules import make_ppo_actor_critic
-from torchrl_mbmf.trainers import Trainer
-from torchrl_mbmf.trainers.ppo import ppo_update
-from torchrl_mbmf.trainers.sac import (
+from torchrl_mbmf.objectives.fused_ppo import ppo_update
+from torchrl_mbmf.objectives.fused_sac import (
     FusedSACUpdate,
     sac_update_step,
 )
+from torchrl_mbmf.trainers import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = "HalfCheetah-v5"

@@ -50,8 +50,8 @@ from torchrl_mbmf.data import TransitionDataset, collect_random_transitions
 from torchrl_mbmf.envs import LearnedDynamicsEnv, make_half_cheetah_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
 from torchrl_mbmf.objectives import DynamicsLoss
-from torchrl_mbmf.trainers import fit_dynamics
-from torchrl_mbmf.trainers.dynamics import dynamics_optimizer
+from torchrl_mbmf.world_model import fit_dynamics
+from torchrl_mbmf.world_model.fit import dynamics_optimizer
 
 NOTE = (
     "2 shared vCPUs with other jobs running at the same time (load average far above 2): "

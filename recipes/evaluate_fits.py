@@ -22,6 +22,7 @@ from omegaconf import DictConfig
 from torchrl_mbmf.analysis.horizon import snapshot_open_loop_errors
 from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.envs import make_env
+from torchrl_mbmf.runs.layout import FIT_ERRORS, RunFolder
 
 log = logging.getLogger("evaluate_fits")
 
@@ -53,7 +54,7 @@ def main(cfg: DictConfig) -> None:
         "horizons": horizons,
         "fits": rows,
     }
-    path = run_dir / "world_models" / "open_loop_errors.json"
+    path = RunFolder(run_dir).fits / FIT_ERRORS
     path.write_text(json.dumps(out, indent=2) + "\n")
     log.info("wrote %s (%d fits)", path, len(rows))
 

@@ -32,7 +32,7 @@ from torchrl_mbmf.baselines.sb3 import (
     make_sb3_model,
     sb3_grad_steps,
 )
-from torchrl_mbmf.trainers.resume import write_run_record
+from torchrl_mbmf.runs.layout import write_run_record
 
 log = logging.getLogger("sb3_reference")
 

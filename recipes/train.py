@@ -16,7 +16,7 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_mbmf.trainers import Trainer
-from torchrl_mbmf.trainers.sac import keep_freed_memory
+from torchrl_mbmf.trainers.device import keep_freed_memory
 
 log = logging.getLogger("train")
 

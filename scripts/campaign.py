@@ -18,7 +18,7 @@ copy can be committed. Every start, finish and failure is appended to ``<root>/c
 ``--snapshot`` (at a session's end) copies unfinished runs the same way, with their latest
 checkpoint: as it is where it is small (PPO, and PPO-MPC once it fine-tunes), with its
 real-transition dataset replaced by the actions that made it where it holds one (MPC and
-PPO-MPC while they plan: :func:`~torchrl_mbmf.trainers.dataset_replay.compact_checkpoint`, a
+PPO-MPC while they plan: :func:`~torchrl_mbmf.runs.dataset_replay.compact_checkpoint`, a
 few MB); a worker on a machine that lacks such a run's folder restores it from that copy
 (replaying the actions to rebuild the dataset bit for bit) and resumes it. A run whose
 committed copy holds a summary is done on any machine. ``--ledger`` appends the machine's events
@@ -50,6 +50,7 @@ SMALL_FILES = (
     "machine.json",
     "summary.json",
     "policy.pt",
+    "policy.json",
     "resume_log.json",
     "logs",
     "train.log",
@@ -401,7 +402,7 @@ def _run_env(folder: Path) -> tuple[object, int]:
 
 def _compact(folder: Path, checkpoint: Path, target: Path) -> bool:
     """Writes ``checkpoint`` compacted to ``target`` if it fits :data:`COMPACT_CHECKPOINT_BYTES`."""
-    from torchrl_mbmf.trainers.dataset_replay import compact_checkpoint
+    from torchrl_mbmf.runs.dataset_replay import compact_checkpoint
 
     try:
         env, seed = _run_env(folder)
@@ -481,7 +482,7 @@ def _expand(folder: Path, checkpoint: Path) -> bool:
     paths = [entry["path"] for entry in manifest.get("components", {}).values()]
     if not any((checkpoint / path / "replay").is_dir() for path in paths):
         return False
-    from torchrl_mbmf.trainers.dataset_replay import expand_checkpoint
+    from torchrl_mbmf.runs.dataset_replay import expand_checkpoint
 
     env, _ = _run_env(folder)
     return expand_checkpoint(checkpoint, env)

@@ -29,8 +29,8 @@ from torchrl_mbmf.modules import (
     make_ppo_actor_critic,
 )
 from torchrl_mbmf.modules.ensemble import EnsembleLinear
-from torchrl_mbmf.trainers import fit_dynamics
-from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
+from torchrl_mbmf.world_model import fit_dynamics
+from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 
 
 def _data(n=256, s=5, a=2, seed=0):

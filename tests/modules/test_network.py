@@ -17,10 +17,10 @@ from torch import nn
 
 from torchrl_mbmf.envs import EnsembleLearnedDynamicsEnv, LearnedDynamicsEnv, make_gym_state_env
 from torchrl_mbmf.modules import DeltaDynamicsModel, EnsembleDeltaDynamicsModel
-from torchrl_mbmf.trainers import fit_dynamics
-from torchrl_mbmf.trainers.ensemble_fit import fit_ensemble
-from torchrl_mbmf.trainers.fit_history import EnsembleFitHistory
-from torchrl_mbmf.trainers.world_model_fit import fit_world_model
+from torchrl_mbmf.world_model import fit_dynamics
+from torchrl_mbmf.world_model.ensemble_fit import fit_ensemble
+from torchrl_mbmf.world_model.fit import fit_world_model
+from torchrl_mbmf.world_model.fit_history import EnsembleFitHistory
 
 BUFFERS = {
     "state_loc": (18,),

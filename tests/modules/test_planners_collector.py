@@ -18,7 +18,7 @@ from torchrl_mbmf.modules import (
     make_ppo_actor_critic,
     make_sac_actor_critic,
 )
-from torchrl_mbmf.trainers import fit_dynamics
+from torchrl_mbmf.world_model import fit_dynamics
 
 
 def _collect(env, policy, frames):

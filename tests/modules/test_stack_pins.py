@@ -17,6 +17,7 @@ import hashlib
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl_mbmf.trainers.ensemble_fit import fit_ensemble
 
 from torchrl_mbmf.envs import EnsembleLearnedDynamicsEnv, LearnedDynamicsEnv, make_half_cheetah_env
 from torchrl_mbmf.modules import (
@@ -28,7 +29,6 @@ from torchrl_mbmf.modules import (
     make_ppo_actor_critic,
 )
 from torchrl_mbmf.trainers import fit_dynamics
-from torchrl_mbmf.trainers.ensemble_fit import fit_ensemble
 
 # --------------------------------------------------------------------------- recorded values
 CANARY = "fcc542876eb9711111b89c40e385ba72657615d11730176cca998dada3611cb1"

@@ -17,7 +17,7 @@ from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.envs import make_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
 from torchrl_mbmf.objectives.open_loop import multistep_mse
-from torchrl_mbmf.trainers.fit_records import save_fit_snapshot
+from torchrl_mbmf.world_model.snapshots import save_fit_snapshot
 
 ROOT = Path(__file__).resolve().parents[2]
 

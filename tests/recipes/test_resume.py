@@ -256,7 +256,7 @@ def test_a_planning_checkpoint_without_its_dataset_is_refused(tmp_path):
     record = json.loads(manifest.read_text())
     del record["components"]["dataset"]
     manifest.write_text(json.dumps(record))
-    from torchrl_mbmf.trainers.checkpointing import write_integrity_record
+    from torchrl_mbmf.runs.storage import write_integrity_record
 
     (_checkpoint(run, 620) / "integrity.json").unlink()
     write_integrity_record(_checkpoint(run, 620))
@@ -274,9 +274,9 @@ def test_a_planning_checkpoint_compacted_to_its_replay_resumes_exactly(
     run exactly: the dataset is rebuilt bit for bit by replaying the actions."""
     from omegaconf import OmegaConf
 
+    from torchrl_mbmf.runs.dataset_replay import compact_checkpoint, expand_checkpoint
+    from torchrl_mbmf.runs.storage import CheckpointIntegrityError, verify_checkpoint
     from torchrl_mbmf.trainers.build import make_train_env
-    from torchrl_mbmf.trainers.checkpointing import CheckpointIntegrityError, verify_checkpoint
-    from torchrl_mbmf.trainers.dataset_replay import compact_checkpoint, expand_checkpoint
 
     run = tmp_path / "run"
     _kill_when(run, lambda: _checkpoint(run, 620).exists() and _rows_after(run, 620), *LOG_CFG)

@@ -244,7 +244,7 @@ TINY_PLANNING = [
 def test_a_planning_checkpoint_is_committed_compacted_and_rebuilt_on_a_fresh_machine(
     tmp_path, monkeypatch
 ):
-    from torchrl_mbmf.trainers.checkpointing import verify_checkpoint
+    from torchrl_mbmf.runs.storage import verify_checkpoint
 
     root = tmp_path / "machine1" / "runs"
     run = root / "p"

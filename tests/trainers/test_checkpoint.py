@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_mbmf.trainers.checkpointing import ReplayCheckpointAdapter as _ReplayAdapter
+from torchrl_mbmf.runs.storage import ReplayCheckpointAdapter as _ReplayAdapter
 
 
 def _buffer(capacity: int) -> TensorDictReplayBuffer:

@@ -145,7 +145,7 @@ def test_resume_never_unpickles_a_checkpoint_component(run_dir, plant_pickle):
         TensorDict().memmap(state)
     marker = plant_pickle(state)
     try:  # a crafted checkpoint comes with a matching integrity record
-        from torchrl_mbmf.trainers.checkpointing import write_integrity_record
+        from torchrl_mbmf.runs.storage import write_integrity_record
 
         write_integrity_record(_latest(run_dir))
     except ImportError:
@@ -156,7 +156,7 @@ def test_resume_never_unpickles_a_checkpoint_component(run_dir, plant_pickle):
 
 
 def test_replay_checkpoint_never_unpickles(tmp_path, plant_pickle):
-    from torchrl_mbmf.trainers.checkpointing import ReplayCheckpointAdapter
+    from torchrl_mbmf.runs.storage import ReplayCheckpointAdapter
 
     source = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
     source.extend(TensorDict({"obs": torch.arange(12.0)[:, None]}, [12]))
@@ -173,7 +173,7 @@ def test_replay_checkpoint_never_unpickles(tmp_path, plant_pickle):
 
 
 def test_a_tensor_that_could_not_be_loaded_is_refused_before_writing(tmp_path):
-    from torchrl_mbmf.trainers.checkpointing import TensorStateAdapter
+    from torchrl_mbmf.runs.storage import TensorStateAdapter
 
     class Holder:
         def state_dict(self):
@@ -187,7 +187,7 @@ def test_a_tensor_that_could_not_be_loaded_is_refused_before_writing(tmp_path):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.int64, torch.bool])
 def test_every_allowed_dtype_round_trips(tmp_path, dtype):
-    from torchrl_mbmf.trainers.checkpointing import TensorStateAdapter
+    from torchrl_mbmf.runs.storage import TensorStateAdapter
 
     class Holder:
         def __init__(self, value):

@@ -109,7 +109,7 @@ def test_a_run_folder_config_from_before_targets_validates_and_resumes(tmp_path)
     """``data/config_before_targets.yaml`` is a run folder's ``config.yaml`` written before the
     groups named their builders (the command of the campaign's runs). It validates, builds, and
     a resume with today's config of the same command changes nothing."""
-    from torchrl_mbmf.trainers.resume import fingerprint
+    from torchrl_mbmf.runs.resume import fingerprint
 
     old = OmegaConf.load(Path(__file__).parent / "data" / "config_before_targets.yaml")
     assert "_target_" not in old.planner

@@ -13,7 +13,7 @@ from torchrl.envs.utils import RandomPolicy
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.data import CorruptDatasetError, TransitionDataset
 from torchrl_mbmf.envs import env_metadata, make_env
-from torchrl_mbmf.trainers.dataset_replay import DatasetReplay, NotReplayableError
+from torchrl_mbmf.runs.dataset_replay import DatasetReplay, NotReplayableError
 
 SEED = 5
 

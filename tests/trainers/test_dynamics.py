@@ -6,7 +6,7 @@ from tensordict import TensorDict
 
 from torchrl_mbmf.modules import DeltaDynamicsModel
 from torchrl_mbmf.objectives import DynamicsLoss
-from torchrl_mbmf.trainers import fit_dynamics
+from torchrl_mbmf.world_model import fit_dynamics
 
 
 def _linear_system(n=2000, seed=0):

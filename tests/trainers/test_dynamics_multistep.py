@@ -16,8 +16,8 @@ from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.envs import make_gym_state_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
 from torchrl_mbmf.objectives.open_loop import open_loop_rollout
-from torchrl_mbmf.trainers import fit_dynamics
-from torchrl_mbmf.trainers.dynamics import MultiStepWindows, fit_dynamics_kwargs
+from torchrl_mbmf.world_model import fit_dynamics
+from torchrl_mbmf.world_model.fit import MultiStepWindows, fit_dynamics_kwargs
 
 _ANGLE = 0.3
 _ROTATION = 0.98 * torch.tensor(

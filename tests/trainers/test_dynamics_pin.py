@@ -19,8 +19,8 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_mbmf.modules import DeltaDynamicsModel
-from torchrl_mbmf.trainers import fit_dynamics
-from torchrl_mbmf.trainers.dynamics import dynamics_optimizer
+from torchrl_mbmf.world_model import fit_dynamics
+from torchrl_mbmf.world_model.fit import dynamics_optimizer
 
 # SHA-256 of the fitted weights (then the per-epoch losses) recorded with the fit loop before
 # the speed work, one thread.

@@ -12,9 +12,9 @@ from hydra import compose, initialize_config_dir
 from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.envs import make_gym_state_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
+from torchrl_mbmf.runs.storage import CheckpointIntegrityError
 from torchrl_mbmf.trainers import Trainer
-from torchrl_mbmf.trainers.checkpointing import CheckpointIntegrityError
-from torchrl_mbmf.trainers.fit_records import (
+from torchrl_mbmf.world_model.snapshots import (
     fit_snapshots,
     heldout_open_loop_errors,
     load_fit_snapshot,

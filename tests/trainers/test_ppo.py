@@ -10,7 +10,7 @@ from rl_helpers import make_test_ppo
 from tensordict import TensorDict
 from torchrl.objectives.value import GAE
 
-from torchrl_mbmf.trainers.ppo import PPO_STATS, FusedPPOUpdate, ppo_update
+from torchrl_mbmf.objectives.fused_ppo import PPO_STATS, FusedPPOUpdate, ppo_update
 
 
 def _pair(distribution: str, num_envs: int | None, frames: int = 64):

@@ -7,7 +7,7 @@ import torch
 from rl_helpers import make_test_sac_loss
 from torchrl.objectives import SoftUpdate
 
-from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
+from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
 
 
 def _fused_losses(fused: FusedSACUpdate, batch):
@@ -163,7 +163,7 @@ def _filled_buffer(n: int = 50, capacity: int = 1000, batch_size: int = 8):
 
 
 def test_replay_sampler_draws_the_stock_rows():
-    from torchrl_mbmf.trainers.sac import ReplaySampler
+    from torchrl_mbmf.data import ReplaySampler
 
     buffer, _ = _filled_buffer()
     loss, _ = make_test_sac_loss()
@@ -183,7 +183,7 @@ def test_replay_sampler_draws_the_stock_rows():
 
 def test_replay_sampler_follows_a_reloaded_buffer():
     """Emptying and refilling (what the replay checkpoint adapter does) is picked up."""
-    from torchrl_mbmf.trainers.sac import ReplaySampler
+    from torchrl_mbmf.data import ReplaySampler
 
     buffer, _ = _filled_buffer(n=40)
     sampler = ReplaySampler(buffer, ["observation"], batch_size=64)
@@ -201,7 +201,7 @@ def test_replay_sampler_follows_a_reloaded_buffer():
 def test_replay_sampler_rejects_bad_input():
     from torchrl.data import LazyTensorStorage, SamplerWithoutReplacement, TensorDictReplayBuffer
 
-    from torchrl_mbmf.trainers.sac import ReplaySampler
+    from torchrl_mbmf.data import ReplaySampler
 
     buffer, _ = _filled_buffer()
     with pytest.raises(ValueError, match="positive batch_size"):
@@ -217,7 +217,7 @@ def test_replay_sampler_rejects_bad_input():
 
 def test_fused_update_autograd_actor_fallback_matches_sacloss(monkeypatch):
     """An actor the update cannot split into MLP + head goes through autograd, same gradients."""
-    monkeypatch.setattr("torchrl_mbmf.trainers.sac._split_policy", lambda net: None)
+    monkeypatch.setattr("torchrl_mbmf.objectives.fused_sac._split_policy", lambda net: None)
     torch.manual_seed(0)
     loss, batch = make_test_sac_loss(batch_size=32, hidden=16, activation=torch.nn.ReLU)
     params = list(loss.parameters())
@@ -236,7 +236,7 @@ def test_fused_update_autograd_actor_fallback_matches_sacloss(monkeypatch):
 def test_keep_freed_memory():
     import platform
 
-    from torchrl_mbmf.trainers.sac import keep_freed_memory
+    from torchrl_mbmf.trainers.device import keep_freed_memory
 
     applied = keep_freed_memory()
     if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":

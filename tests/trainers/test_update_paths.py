@@ -7,7 +7,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from torchrl_mbmf.trainers import FusedPPOUpdate, FusedSACUpdate, Trainer
+from torchrl_mbmf.objectives.fused_ppo import FusedPPOUpdate
+from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate
+from torchrl_mbmf.trainers import Trainer
 
 CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
 

@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_mbmf.modules import DeltaDynamicsModel, EnsembleDeltaDynamicsModel
-from torchrl_mbmf.trainers import (
+from torchrl_mbmf.world_model import (
     EnsembleFitHistory,
     FitHistory,
     fit_dynamics,

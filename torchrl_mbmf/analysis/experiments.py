@@ -31,7 +31,17 @@ from torchrl_mbmf.analysis.runs import (
     ppo_maximum_table,
 )
 from torchrl_mbmf.analysis.stats import Interval, interval_summary
-from torchrl_mbmf.trainers.export import load_policy
+from torchrl_mbmf.runs.export import load_policy
+from torchrl_mbmf.runs.layout import (
+    CONFIG,
+    GIT_COMMIT,
+    MACHINE,
+    POLICY,
+    POLICY_RECORD,
+    SUMMARY,
+    TRAIN_LOG,
+    RunFolder,
+)
 
 DEFAULT_HORIZON = 10
 REWARDS = ("default", "head_pen", "shin_pen")
@@ -171,7 +181,7 @@ def _gait(runs: dict[str, Run], out_dir: Path, *, steps: int, render: bool) -> d
 
     metrics, out = {}, {"policies": {}, "metrics": {}}
     for label, run in runs.items():
-        if not (run.path / "policy.pt").exists():
+        if not (run.path / POLICY).exists():
             continue
         actor, env, info = load_policy(run.path)
         rollout = record_gait(env, actor, steps=steps)
@@ -284,10 +294,10 @@ def collect_runs(runs: Iterable[Run], dest: str | Path, *, max_file_bytes: int =
     dest = Path(dest)
     copied = 0
     for run in runs:
-        names = ("config.yaml", "summary.json", "git_commit.txt", "machine.json")
+        names = (CONFIG, SUMMARY, GIT_COMMIT, MACHINE)
         files = [run.path / n for n in names]
-        files += [run.path / "policy.pt", run.path / "train.log"]
-        files += sorted((run.path / "logs" / "scalars").rglob("*.csv"))
+        files += [run.path / POLICY, run.path / POLICY_RECORD, run.path / TRAIN_LOG]
+        files += sorted(RunFolder(run.path).scalars.rglob("*.csv"))
         for f in files:
             if f.exists() and f.stat().st_size <= max_file_bytes:
                 target = dest / run.name / f.relative_to(run.path)
@@ -538,11 +548,11 @@ def analyze_experiments(
         # One policy per reward: the lowest seed whose run finished (else got furthest).
         seed0 = {
             rw: sorted(
-                (r for r in v if (r.path / "policy.pt").exists()),
+                (r for r in v if (r.path / POLICY).exists()),
                 key=lambda r: (not r.complete, -r.last_step, r.seed),
             )[0]
             for rw, v in log_std.items()
-            if any((r.path / "policy.pt").exists() for r in v)
+            if any((r.path / POLICY).exists() for r in v)
         }
         analysis["gait"] = _gait(seed0, out_dir, steps=gait_steps, render=render)
 

@@ -6,7 +6,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-import yaml
 
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
@@ -16,7 +15,8 @@ from torchrl_mbmf.objectives.open_loop import (
     multistep_mse,
     open_loop_rollout,
 )
-from torchrl_mbmf.trainers.fit_records import fit_snapshots, load_fit_snapshot
+from torchrl_mbmf.runs.layout import RunFolder
+from torchrl_mbmf.world_model.snapshots import fit_snapshots, load_fit_snapshot
 
 # The thesis' tables 8 and 9: h -> (x-position MSE, reward MSE), each the mean over steps 1..h.
 THESIS_HORIZON_MSE = {5: (2.359, 0.3856), 10: (2.489, 0.50635), 25: (3.0342, 0.6238)}
@@ -112,7 +112,7 @@ def snapshot_open_loop_errors(
     """Open-loop errors of every world-model fit a training run recorded, on the same data.
 
     Each snapshot under ``run_dir/world_models/`` (written at every fit, see
-    :mod:`torchrl_mbmf.trainers.fit_records`) is loaded into a model of the run's
+    :mod:`torchrl_mbmf.world_model.snapshots`) is loaded into a model of the run's
     ``world_model.hidden_sizes`` and evaluated with :func:`multistep_mse` on the same start
     states, so the rows compare the refits (thesis tables 8 and 9 at each refit).
 
@@ -139,7 +139,7 @@ def snapshot_open_loop_errors(
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_gym_state_env
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.fit_records import save_fit_snapshot
+        >>> from torchrl_mbmf.world_model.snapshots import save_fit_snapshot
         >>> run = pathlib.Path(tempfile.mkdtemp())
         >>> _ = (run / "config.yaml").write_text(yaml.safe_dump(
         ...     {"world_model": {"hidden_sizes": [8], "ensemble_size": 1}}))
@@ -150,7 +150,7 @@ def snapshot_open_loop_errors(
         (100, [1, 5])
     """
     run_dir = Path(run_dir)
-    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    config = RunFolder(run_dir).read_config()
     wm = config.get("world_model", {})
     if int(wm.get("ensemble_size", 1) or 1) > 1:
         raise ValueError(f"{run_dir} planned with an ensemble; expected a single world model")

@@ -6,7 +6,7 @@ policy updates. Two records of each fit's open-loop error exist:
 - **on the policy's own episodes**: before each refit the run scores the model it is about to
   replace on the real transitions collected since that model's fit, which no fit has seen
   (``model/heldout_x_mse_h<h>`` and ``model/heldout_reward_mse_h<h>``, logged at the refit's
-  step; see :func:`torchrl_mbmf.trainers.fit_records.heldout_open_loop_errors`);
+  step; see :func:`torchrl_mbmf.world_model.snapshots.heldout_open_loop_errors`);
 - **on random-policy episodes**: ``recipes/evaluate_fits.py`` scores every kept fit on the same
   fresh random episodes (``world_models/open_loop_errors.json``), the data of the thesis' own
   tables 8 and 9.
@@ -21,6 +21,7 @@ from typing import Any
 from torchrl_mbmf.analysis.horizon import THESIS_HORIZON_MSE
 from torchrl_mbmf.analysis.runs import Run
 from torchrl_mbmf.analysis.stats import interval_summary
+from torchrl_mbmf.runs.layout import FIT_ERRORS, RunFolder
 
 QUANTITIES = ("x_mse", "reward_mse")
 
@@ -64,7 +65,7 @@ def run_refit_errors(run: Run) -> dict[int, dict[str, dict[int, dict[str, float]
                 )
             scored = fits[later[0] - 1]
             out[scored].setdefault("policy", {})[h] = {"x_mse": float(xv), "reward_mse": float(rv)}
-    path = run.path / "world_models" / "open_loop_errors.json"
+    path = RunFolder(run.path).fits / FIT_ERRORS
     if path.exists():
         for row in json.loads(path.read_text())["fits"]:
             random = out.setdefault(int(row["transitions"]), {}).setdefault("random", {})
@@ -74,7 +75,7 @@ def run_refit_errors(run: Run) -> dict[int, dict[str, dict[int, dict[str, float]
 
 
 def _logged_horizons(run: Run) -> list[int]:
-    folder = run.path / "logs" / "scalars" / "model"
+    folder = RunFolder(run.path).scalars / "model"
     names = folder.glob("heldout_x_mse_h*.csv") if folder.is_dir() else []
     return sorted(int(p.stem.removeprefix("heldout_x_mse_h")) for p in names)
 

@@ -9,18 +9,16 @@ interval, and compute the thesis' "PPO-maximum" sample-efficiency table (table 1
 
 from __future__ import annotations
 
-import csv
-import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from torchrl_mbmf.analysis.stats import Interval, bootstrap_ci, first_step_reaching
-from torchrl_mbmf.trainers.export import variant_tag
+from torchrl_mbmf.runs.export import variant_tag
+from torchrl_mbmf.runs.layout import CONFIG, RunFolder
 
 MODEL_BASED_METHODS = ("mpc", "ppo_mpc", "sac_mpc")
 RETURN_CURVE = "train/return_last10_mean"
@@ -114,14 +112,12 @@ class Run:
     @property
     def commit(self) -> str:
         """The git commit the run's code came from (``"unknown"`` if not recorded)."""
-        path = self.path / "git_commit.txt"
-        return path.read_text().strip() if path.exists() else "unknown"
+        return RunFolder(self.path).read_commit()
 
     @property
     def machine(self) -> dict[str, Any]:
         """``machine.json``: Python, torch and torchrl versions, CPU count (empty if absent)."""
-        path = self.path / "machine.json"
-        return json.loads(path.read_text()) if path.exists() else {}
+        return RunFolder(self.path).read_machine()
 
     @property
     def wall_seconds(self) -> float | None:
@@ -137,8 +133,7 @@ class Run:
         steps, rates = self.scalar("time/steps_per_s")
         if not steps.size:
             return None if self.summary is None else self.summary.get("seconds")
-        path = self.path / "resume_log.json"
-        events = json.loads(path.read_text()) if path.exists() else []
+        events = RunFolder(self.path).read_resume_log()
         starts = [0] + [int(e["real_steps"]) for e in events if e.get("event") == "resume"]
         total = 0.0
         for begin, end in zip(starts, [*starts[1:], None], strict=True):
@@ -168,14 +163,7 @@ class Run:
             name: the scalar's name, for example ``"train/return_last10_mean"``.
         """
         if name not in self._cache:
-            path = self.path / "logs" / "scalars" / f"{name}.csv"
-            rows = []
-            if path.exists():
-                with path.open() as f:
-                    rows = [(int(float(r[0])), float(r[1])) for r in csv.reader(f) if r]
-            steps = np.array([r[0] for r in rows], dtype=np.int64)
-            values = np.array([r[1] for r in rows], dtype=np.float64)
-            self._cache[name] = (steps, values)
+            self._cache[name] = RunFolder(self.path).read_scalar(name)
         return self._cache[name]
 
 
@@ -212,14 +200,11 @@ def load_runs(roots: str | Path | Iterable[str | Path], *, dedupe: bool = True) 
         root = Path(root)
         if not root.exists():
             raise FileNotFoundError(f"run root {root} does not exist")
-        for cfg_path in sorted(root.rglob("config.yaml")):
-            folder = cfg_path.parent
-            if not (folder / "logs" / "scalars").is_dir():
+        for cfg_path in sorted(root.rglob(CONFIG)):
+            folder = RunFolder(cfg_path.parent)
+            if not folder.is_training_run():
                 continue  # Hydra's own .hydra/config.yaml, or a world-model job
-            config = yaml.safe_load(cfg_path.read_text())
-            summary_path = folder / "summary.json"
-            summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
-            runs.append(Run(folder, config, summary))
+            runs.append(Run(folder.path, folder.read_config(), folder.read_summary()))
     if dedupe:
         best: dict[str, Run] = {}
         for run in runs:

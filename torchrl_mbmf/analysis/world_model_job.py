@@ -18,7 +18,7 @@ from torchrl_mbmf.envs.factory import env_metadata, make_env
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.objectives.open_loop import HorizonError, multistep_mse
-from torchrl_mbmf.trainers.dynamics import fit_dynamics, fit_dynamics_kwargs
+from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
 
 logger = logging.getLogger(__name__)
 
@@ -154,7 +154,7 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
     Writes ``dataset/`` (the random transitions), ``world_model.pt`` (state dict and
     constructor config), ``fit_history.json``, ``horizon_mse.json`` and ``horizon_mse.md``, and
     ``horizon_x.png`` / ``horizon_reward.png``. The model is fitted with the settings of
-    ``world_model`` (:func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics_kwargs`, including
+    ``world_model`` (:func:`~torchrl_mbmf.world_model.fit.fit_dynamics_kwargs`, including
     ``world_model.multi_step``).
 
     With ``compare_multi_step: k`` a second model is fitted with ``multi_step=k`` on the same

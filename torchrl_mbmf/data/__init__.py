@@ -1,3 +1,4 @@
+from torchrl_mbmf.data.replay import ReplaySampler
 from torchrl_mbmf.data.transitions import (
     CorruptDatasetError,
     DatasetMismatchError,
@@ -8,6 +9,7 @@ from torchrl_mbmf.data.transitions import (
 __all__ = [
     "CorruptDatasetError",
     "DatasetMismatchError",
+    "ReplaySampler",
     "TransitionDataset",
     "collect_random_transitions",
 ]

@@ -21,7 +21,7 @@ class EnsembleDeltaDynamicsModel(DeltaDynamicsModel):
     ``as_tensordict_module``) give the members' mean, or one member per batch row with
     ``member_index``, so the ensemble is accepted wherever a ``DeltaDynamicsModel`` makes a
     prediction (:class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` then steps the members' mean).
-    Fit it with :func:`~torchrl_mbmf.trainers.ensemble_fit.fit_ensemble` (bootstrapped members),
+    Fit it with :func:`~torchrl_mbmf.world_model.ensemble_fit.fit_ensemble` (bootstrapped members),
     not ``fit_dynamics``; roll each batch element in its own member and read the disagreement
     with :class:`~torchrl_mbmf.envs.EnsembleLearnedDynamicsEnv`. ``num_members=1`` is the
     thesis model itself (its ``nn.Linear`` layout; an ensemble of one), fitted by

@@ -54,7 +54,7 @@ class EnsembleLinear(nn.Module):
             raise ValueError(
                 f"EnsembleLinear expects input [num_members={self.num_members}, N, "
                 f"in_features={self.in_features}], got {tuple(x.shape)} (an ensemble is trained "
-                "with torchrl_mbmf.trainers.ensemble_fit.fit_ensemble, not fit_dynamics)"
+                "with torchrl_mbmf.world_model.ensemble_fit.fit_ensemble, not fit_dynamics)"
             )
         return torch.baddbmm(self.bias.unsqueeze(-2), x, self.weight)
 

@@ -1,50 +1,130 @@
+"""The training loop and its parts: schedule, hooks, agents, build, config, the world-model part.
+
+Names that lived here before the package was split keep working for one release: importing
+them (``torchrl_mbmf.trainers.fit_dynamics``, ``torchrl_mbmf.trainers.dataset_replay``) warns
+with a :class:`DeprecationWarning` that names their new home (:data:`MOVED_MODULES`,
+:data:`MOVED_NAMES`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import types
+import warnings
+
 from torchrl_mbmf.trainers.agents import PPOAgent, SACAgent
 from torchrl_mbmf.trainers.config import METHODS, ConfigError, validate_train_config
-from torchrl_mbmf.trainers.dynamics import FitHistory, fit_dynamics, fit_dynamics_kwargs
-from torchrl_mbmf.trainers.ensemble_fit import (
-    DisagreementCalibration,
-    EnsembleFitHistory,
-    calibrate_disagreement_threshold,
-    fit_ensemble,
-)
-from torchrl_mbmf.trainers.export import load_policy, save_policy
-from torchrl_mbmf.trainers.fit_data import transition_tensors
 from torchrl_mbmf.trainers.guards import TrainingDivergedError
 from torchrl_mbmf.trainers.loop import Trainer, seed_everything
 from torchrl_mbmf.trainers.planning import WorldModelPart
-from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
-from torchrl_mbmf.trainers.resume import RunCheckpoint
-from torchrl_mbmf.trainers.sac import FusedSACUpdate, sac_update_step
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
-from torchrl_mbmf.trainers.world_model_fit import fit_world_model
 
 __all__ = [
     "METHODS",
+    "MOVED_MODULES",
+    "MOVED_NAMES",
     "Actor",
     "ConfigError",
-    "DisagreementCalibration",
-    "EnsembleFitHistory",
-    "FitHistory",
-    "FusedPPOUpdate",
-    "FusedSACUpdate",
     "PPOAgent",
     "Phase",
     "PhaseSchedule",
-    "RunCheckpoint",
     "SACAgent",
     "Trainer",
     "TrainingDivergedError",
     "WorldModelPart",
-    "calibrate_disagreement_threshold",
-    "fit_dynamics",
-    "fit_dynamics_kwargs",
-    "fit_ensemble",
-    "fit_world_model",
-    "load_policy",
-    "ppo_update",
-    "sac_update_step",
-    "save_policy",
     "seed_everything",
-    "transition_tensors",
     "validate_train_config",
 ]
+
+#: Former modules of this package and the modules that now hold their names (searched in
+#: order). Kept for one release.
+MOVED_MODULES: dict[str, tuple[str, ...]] = {
+    "world_model_fit": ("torchrl_mbmf.world_model.fit",),
+    "dynamics": ("torchrl_mbmf.world_model.fit",),
+    "fit_data": ("torchrl_mbmf.world_model.fit_data",),
+    "fit_history": ("torchrl_mbmf.world_model.fit_history",),
+    "fit_records": ("torchrl_mbmf.world_model.snapshots",),
+    "ensemble_fit": ("torchrl_mbmf.world_model.ensemble_fit",),
+    "checkpointing": ("torchrl_mbmf.runs.storage",),
+    "resume": (
+        "torchrl_mbmf.runs.checkpoint",
+        "torchrl_mbmf.runs.resume",
+        "torchrl_mbmf.runs.layout",
+    ),
+    "resume_logs": ("torchrl_mbmf.runs.logs",),
+    "dataset_replay": ("torchrl_mbmf.runs.dataset_replay",),
+    "export": ("torchrl_mbmf.runs.export",),
+    "ppo": ("torchrl_mbmf.objectives.fused_ppo",),
+    "sac": (
+        "torchrl_mbmf.objectives.fused_sac",
+        "torchrl_mbmf.data.replay",
+        "torchrl_mbmf.trainers.device",
+    ),
+}
+
+#: Former names of this package and the modules that now hold them. Kept for one release.
+MOVED_NAMES: dict[str, str] = {
+    "DisagreementCalibration": "torchrl_mbmf.world_model.ensemble_fit",
+    "EnsembleFitHistory": "torchrl_mbmf.world_model.fit_history",
+    "FitHistory": "torchrl_mbmf.world_model.fit_history",
+    "FusedPPOUpdate": "torchrl_mbmf.objectives.fused_ppo",
+    "FusedSACUpdate": "torchrl_mbmf.objectives.fused_sac",
+    "RunCheckpoint": "torchrl_mbmf.runs.checkpoint",
+    "calibrate_disagreement_threshold": "torchrl_mbmf.world_model.ensemble_fit",
+    "fit_dynamics": "torchrl_mbmf.world_model.fit",
+    "fit_dynamics_kwargs": "torchrl_mbmf.world_model.fit",
+    "fit_ensemble": "torchrl_mbmf.world_model.ensemble_fit",
+    "fit_world_model": "torchrl_mbmf.world_model.fit",
+    "load_policy": "torchrl_mbmf.runs.export",
+    "ppo_update": "torchrl_mbmf.objectives.fused_ppo",
+    "sac_update_step": "torchrl_mbmf.objectives.fused_sac",
+    "save_policy": "torchrl_mbmf.runs.export",
+    "transition_tensors": "torchrl_mbmf.world_model.fit_data",
+}
+
+
+def _moved(old: str, new: str) -> None:
+    warnings.warn(
+        f"{old} moved to {new}; the old path goes in the next release",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+
+
+class _MovedModule(types.ModuleType):
+    """A former module of this package: its names, read from their new modules, with a warning."""
+
+    def __init__(self, name: str, targets: tuple[str, ...]) -> None:
+        super().__init__(f"{__name__}.{name}", f"Moved to {', '.join(targets)}.")
+        self._targets = targets
+
+    def __getattr__(self, name: str) -> object:
+        if name.startswith("__") and name != "__all__":
+            raise AttributeError(name)
+        if name == "__all__":
+            return [
+                n for t in self._targets for n in getattr(importlib.import_module(t), "__all__", ())
+            ]
+        for target in self._targets:
+            module = importlib.import_module(target)
+            if hasattr(module, name):
+                _moved(f"{self.__name__}.{name}", f"{target}.{name}")
+                return getattr(module, name)
+        raise AttributeError(f"module {self.__name__!r} has no attribute {name!r}")
+
+    def __dir__(self) -> list[str]:
+        return sorted({n for t in self._targets for n in dir(importlib.import_module(t))})
+
+
+for _name, _targets in MOVED_MODULES.items():
+    sys.modules.setdefault(f"{__name__}.{_name}", _MovedModule(_name, _targets))
+
+
+def __getattr__(name: str) -> object:
+    if name in MOVED_NAMES:
+        _moved(f"{__name__}.{name}", f"{MOVED_NAMES[name]}.{name}")
+        return getattr(importlib.import_module(MOVED_NAMES[name]), name)
+    if name in MOVED_MODULES:
+        return sys.modules[f"{__name__}.{name}"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

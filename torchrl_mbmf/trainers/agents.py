@@ -20,8 +20,11 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate
 from torchrl.objectives.value import GAE
 
+from torchrl_mbmf.data.replay import ReplaySampler
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.planners import MinQValue
+from torchrl_mbmf.objectives.fused_ppo import FusedPPOUpdate, ppo_update
+from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
 from torchrl_mbmf.trainers.components import (
     Setting,
     check_arguments,
@@ -29,8 +32,6 @@ from torchrl_mbmf.trainers.components import (
     instantiate_group,
     settings,
 )
-from torchrl_mbmf.trainers.ppo import FusedPPOUpdate, ppo_update
-from torchrl_mbmf.trainers.sac import FusedSACUpdate, ReplaySampler, sac_update_step
 
 __all__ = ["DISTRIBUTIONS", "PPO_UPDATES", "SAC_UPDATES", "PPOAgent", "SACAgent", "make_agent"]
 
@@ -46,7 +47,7 @@ class PPOAgent:
     """Thesis PPO: stock :class:`~torchrl.objectives.ClipPPOLoss` with GAE, Adam.
 
     One :meth:`update` per collected batch: GAE once, ``epochs`` passes of ``minibatch_size``
-    minibatches (through :class:`~torchrl_mbmf.trainers.ppo.FusedPPOUpdate` unless
+    minibatches (through :class:`~torchrl_mbmf.objectives.fused_ppo.FusedPPOUpdate` unless
     ``update=stock``). The builder of the ``ppo`` config group (its ``_target_``): the
     keyword arguments are the group's keys (``configs/algo/ppo.yaml``), checked here
     (:data:`ARGUMENTS`) before anything is built.
@@ -202,9 +203,9 @@ class SACAgent:
 
     :meth:`update` stores the batch and takes ``utd_ratio`` updates per collected frame past
     ``init_random_frames`` (as Stable-Baselines3's ``learning_starts``), through
-    :class:`~torchrl_mbmf.trainers.sac.FusedSACUpdate` unless ``update=stock``. The builder of
-    the ``sac`` config group (its ``_target_``): the keyword arguments are the group's keys
-    (``configs/algo/sac.yaml``), checked here (:data:`ARGUMENTS`) before anything is built.
+    :class:`~torchrl_mbmf.objectives.fused_sac.FusedSACUpdate` unless ``update=stock``. The
+    builder of the ``sac`` config group (its ``_target_``): the keyword arguments are the group's
+    keys (``configs/algo/sac.yaml``), checked here (:data:`ARGUMENTS`) before anything is built.
 
     Args:
         env: the training env (sizes the networks and the action bounds).

@@ -16,16 +16,17 @@ from torchrl.record.loggers import Logger, get_logger
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.envs.factory import make_env
+from torchrl_mbmf.runs.layout import LOGS
 from torchrl_mbmf.trainers.components import choice
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.hooks import (
-    Checkpointing,
     EpisodeLog,
     Evaluation,
     Hooks,
     ModelData,
     ModelRefit,
     ProgressBar,
+    SaveCheckpoint,
     StepTiming,
 )
 
@@ -100,7 +101,7 @@ def make_logger(run_dir: str | Path, *, backend: str) -> Logger | None:
         'CSVLogger'
     """
     choice(*LOGGERS).check("backend", backend)
-    return get_logger(backend, logger_name=str(run_dir), experiment_name="logs")
+    return get_logger(backend, logger_name=str(run_dir), experiment_name=LOGS)
 
 
 def make_collector(
@@ -211,7 +212,7 @@ def make_hooks(cfg: Any, model_based: bool) -> tuple[Hooks, dict[str, Any]]:
     named = {
         "bar": ProgressBar(int(cfg.total_steps), cfg.method, bool(cfg.progress)),
         "timing": StepTiming(),
-        "checkpoints": Checkpointing(int(cfg.checkpoint.every_steps)),
+        "checkpoints": SaveCheckpoint(int(cfg.checkpoint.every_steps)),
     }
     hooks = Hooks()
     hooks.register("collected", named["bar"])

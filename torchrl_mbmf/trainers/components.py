@@ -29,6 +29,9 @@ from hydra.errors import InstantiationException
 from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from torchrl_mbmf.checks import ConfigError
+from torchrl_mbmf.runs.resume import DEFAULT_TARGETS
+
 __all__ = [
     "DEFAULT_TARGETS",
     "ConfigError",
@@ -40,21 +43,6 @@ __all__ = [
     "instantiate_group",
     "settings",
 ]
-
-#: The builder of each component group, used for a config that has no ``_target_`` (a run
-#: folder's ``config.yaml`` written before the groups named their builders): such a config
-#: means exactly these.
-DEFAULT_TARGETS: dict[str, str] = {
-    "ppo": "torchrl_mbmf.trainers.agents.PPOAgent",
-    "sac": "torchrl_mbmf.trainers.agents.SACAgent",
-    "world_model": "torchrl_mbmf.trainers.planning.WorldModelPart",
-    "planner": "torchrl_mbmf.trainers.planning.make_planner",
-    "logger": "torchrl_mbmf.trainers.build.make_logger",
-}
-
-
-class ConfigError(ValueError):
-    """A training config value is invalid; the message names the key and the allowed values."""
 
 
 @dataclass(frozen=True)

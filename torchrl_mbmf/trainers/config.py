@@ -16,14 +16,11 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from torchrl_mbmf.checks import ConfigError
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
-from torchrl_mbmf.trainers.components import (
-    DEFAULT_TARGETS,
-    ConfigError,
-    Setting,
-    group_keys,
-    group_target,
-)
+from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
+from torchrl_mbmf.runs.resume import DEFAULT_TARGETS, RESUME_SAFE_SETTINGS, resume_changes
+from torchrl_mbmf.trainers.components import Setting, group_keys, group_target
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 
 __all__ = [
@@ -39,14 +36,6 @@ __all__ = [
     "validate_train_config",
 ]
 
-#: Methods of ``recipes/train.py``.
-METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc", "sac", "sac_mpc")
-#: Methods that plan with a learned model.
-MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc")
-#: Methods trained with PPO.
-PPO_METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc")
-#: Methods whose planner is guided by the policy.
-GUIDED: tuple[str, ...] = ("ppo_mpc", "sac_mpc")
 COLLECTORS: tuple[str, ...] = ("lean", "stock")
 #: Largest seed NumPy accepts (``np.random.seed``).
 MAX_SEED = 2**32 - 1
@@ -326,77 +315,3 @@ def _check_world_model_variants(cfg: Any, method: str) -> None:
             "world_model.adaptive_horizon needs an ensemble (world_model.ensemble_size >= 2), "
             f"got ensemble_size={members}"
         )
-
-
-#: Settings a resumed run may change: they do not change what is trained (the budget, the
-#: progress bar, torch threads, evaluation and checkpoint retention, folder names). Every other
-#: setting is refused on resume, since the checkpoint's weights, optimisers and data were made
-#: with the old value. Not here on purpose: ``checkpoint.every_steps`` (each checkpoint ends the
-#: episode in progress, so moving them changes the data) and ``logger.backend`` (the logs would
-#: be split across backends). Entries ending in ``.`` are prefixes.
-RESUME_SAFE_SETTINGS: tuple[str, ...] = (
-    "total_steps",
-    "progress",
-    "threads",
-    "eval_every",
-    "eval_episodes",
-    "checkpoint.keep_last",
-    "world_model.save_fits",
-    "run_dir",
-    "run_name",
-    "budget.name",
-    "experiment.",
-)
-
-
-def resume_changes(
-    saved: Mapping[str, Any], now: Mapping[str, Any]
-) -> tuple[dict[str, tuple[Any, Any]], dict[str, tuple[Any, Any]]]:
-    """Splits the differences of two flattened configs into refused and allowed changes.
-
-    Args:
-        saved: the flattened config the checkpoint was written with.
-        now: the flattened config of the resuming run.
-
-    Returns:
-        ``(refused, allowed)``, each ``{key: (saved value, new value)}``; a key missing on one
-        side has the value ``"<missing>"`` there, except a group's ``_target_``, which a
-        config without one means to be the group's default builder
-        (:data:`~torchrl_mbmf.trainers.components.DEFAULT_TARGETS`). ``allowed`` holds the keys of
-        :data:`RESUME_SAFE_SETTINGS`.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.config import resume_changes
-        >>> resume_changes({"ppo.lr": 3e-4, "total_steps": 400},
-        ...                {"ppo.lr": 0.01, "total_steps": 800})
-        ({'ppo.lr': (0.0003, 0.01)}, {'total_steps': (400, 800)})
-    """
-    missing = "<missing>"
-    refused: dict[str, tuple[Any, Any]] = {}
-    allowed: dict[str, tuple[Any, Any]] = {}
-    for key in sorted(set(saved) | set(now)):
-        old, new = saved.get(key, _implied(key, missing)), now.get(key, _implied(key, missing))
-        if _same(old, new):
-            continue
-        safe = any(
-            key == s or (s.endswith(".") and key.startswith(s)) for s in RESUME_SAFE_SETTINGS
-        )
-        (allowed if safe else refused)[key] = (old, new)
-    return refused, allowed
-
-
-def _implied(key: str, missing: str) -> str:
-    """The value a config without ``key`` means (``missing`` but for a group's ``_target_``).
-
-    A config written before the groups named their builders means the default ones.
-    """
-    group, _, name = key.partition(".")
-    return DEFAULT_TARGETS[group] if name == "_target_" and group in DEFAULT_TARGETS else missing
-
-
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
-    if isinstance(a, bool) or isinstance(b, bool):
-        return type(a) is type(b) and a == b
-    return a == b

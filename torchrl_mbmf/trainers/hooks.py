@@ -29,13 +29,13 @@ from torchrl_mbmf.trainers.schedule import Actor
 
 __all__ = [
     "STAGES",
-    "Checkpointing",
     "EpisodeLog",
     "Evaluation",
     "Hooks",
     "ModelData",
     "ModelRefit",
     "ProgressBar",
+    "SaveCheckpoint",
     "StepTiming",
 ]
 
@@ -234,16 +234,16 @@ class Evaluation:
             progress["next_eval"] += self.every
 
 
-class Checkpointing:
+class SaveCheckpoint:
     """Writes a checkpoint when one is due, between two collectors (``round_end``).
 
     Args:
         every: real steps between two checkpoints.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.hooks import Checkpointing
+        >>> from torchrl_mbmf.trainers.hooks import SaveCheckpoint
         >>> progress = {"real_steps": 450, "next_checkpoint": 400}
-        >>> Checkpointing(every=400).due(progress)
+        >>> SaveCheckpoint(every=400).due(progress)
         True
     """
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,9 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import RandomPolicy
 
 from torchrl_mbmf.collectors import LeanCollector
+from torchrl_mbmf.runs.checkpoint import RunCheckpoint
+from torchrl_mbmf.runs.layout import RunFolder, write_run_record
+from torchrl_mbmf.runs.resume import fingerprint
 from torchrl_mbmf.trainers.agents import make_agent
 from torchrl_mbmf.trainers.build import (
     evaluate_policy,
@@ -38,7 +40,6 @@ from torchrl_mbmf.trainers.config import (
 )
 from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.guards import check_finite
-from torchrl_mbmf.trainers.resume import RunCheckpoint, fingerprint, write_run_record
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
 
 __all__ = ["Trainer", "seed_everything"]
@@ -70,7 +71,7 @@ class Trainer:
     uninterrupted run exactly as in a resumed one, so a run killed and resumed from its latest
     checkpoint ends with the same weights as one that never stopped (on CPU, same thread count).
     A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint (see
-    :class:`~torchrl_mbmf.trainers.resume.RunCheckpoint`).
+    :class:`~torchrl_mbmf.runs.resume.RunCheckpoint`).
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -324,7 +325,7 @@ class Trainer:
             "resumed": self.resumed,
         }
         summary["time_breakdown"] = self.time_breakdown(summary["seconds"])
-        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        RunFolder(self.run_dir).write_summary(summary)
         return summary
 
     def time_breakdown(self, seconds: float) -> dict[str, float]:

@@ -30,9 +30,9 @@ from torchrl_mbmf.modules.planners import (
     RandomShootingMPCPlanner,
 )
 from torchrl_mbmf.trainers.components import Setting, check_arguments, settings
-from torchrl_mbmf.trainers.dynamics import fit_dynamics, fit_dynamics_kwargs
-from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
-from torchrl_mbmf.trainers.fit_records import heldout_open_loop_errors, save_fit_snapshot
+from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
+from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
+from torchrl_mbmf.world_model.snapshots import heldout_open_loop_errors, save_fit_snapshot
 
 __all__ = ["WorldModelPart", "make_planner", "make_world_model"]
 
@@ -164,7 +164,7 @@ class WorldModelPart:
     The builder of the ``world_model`` config group (its ``_target_``): the keyword arguments
     are the group's keys. The part takes the whole group and forwards each key to what it
     configures: the architecture keys to the network (:func:`make_world_model`), the fit keys
-    to the fit (:func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics_kwargs`), and keeps the
+    to the fit (:func:`~torchrl_mbmf.world_model.fit.fit_dynamics_kwargs`), and keeps the
     schedule and record keys; each is checked here, before anything is built.
 
     Args:
@@ -183,7 +183,7 @@ class WorldModelPart:
         ensemble_size: the network's members (1: the thesis' single model).
         probabilistic: Gaussian outputs (ensemble only). Defaults to ``False``.
         lr: the fit's Adam learning rate (as every fit key, passed to
-            :func:`~torchrl_mbmf.trainers.dynamics.fit_dynamics`).
+            :func:`~torchrl_mbmf.world_model.fit.fit_dynamics`).
         batch_size: the fit's minibatch size.
         max_epochs: the fit's epoch limit.
         val_fraction: the fit's held-out fraction (early stopping).

@@ -60,7 +60,7 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
     sample, runs. With ``disagreement_threshold=None`` every candidate keeps all ``h`` steps:
     the plain policy-guided planner on the ensemble. A threshold can be picked on held-out
     real data with
-    :func:`~torchrl_mbmf.trainers.ensemble_fit.calibrate_disagreement_threshold`.
+    :func:`~torchrl_mbmf.world_model.ensemble_fit.calibrate_disagreement_threshold`.
 
     **Speed.** Each imagined step runs all ``K`` members on all candidates in one batched op
     per layer (``K`` times one model's FLOPs), which the disagreement needs, and keeps each

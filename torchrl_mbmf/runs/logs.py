@@ -19,10 +19,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-logger = logging.getLogger(__name__)
+from torchrl_mbmf.runs.layout import RESUME_LOG
 
-#: Where the run's history of resumes is appended.
-RESUME_LOG = "resume_log.json"
+__all__ = ["append_resume_log", "cut_csv_logs"]
+
+logger = logging.getLogger(__name__)
 
 
 def _row(step: Any, value: Any) -> str:
@@ -49,7 +50,7 @@ def cut_csv_logs(scalars_dir: Path, rows: Mapping[str, Sequence[tuple[Any, Any]]
     Examples:
         >>> import tempfile
         >>> from pathlib import Path
-        >>> from torchrl_mbmf.trainers.resume_logs import cut_csv_logs
+        >>> from torchrl_mbmf.runs.logs import cut_csv_logs
         >>> with tempfile.TemporaryDirectory() as d:
         ...     (Path(d) / "loss").mkdir()
         ...     _ = (Path(d) / "loss" / "a.csv").write_text("10,1.0\n20,2.0\n30,3.0\n")
@@ -91,7 +92,7 @@ def append_resume_log(run_dir: Path, entry: Mapping[str, Any]) -> None:
     Examples:
         >>> import json, tempfile
         >>> from pathlib import Path
-        >>> from torchrl_mbmf.trainers.resume_logs import append_resume_log
+        >>> from torchrl_mbmf.runs.logs import append_resume_log
         >>> with tempfile.TemporaryDirectory() as d:
         ...     append_resume_log(Path(d), {"event": "resume", "step": 400})
         ...     append_resume_log(Path(d), {"event": "resume", "step": 800})

@@ -30,7 +30,7 @@ from torchrl.envs import EnvBase
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.data import CorruptDatasetError, TransitionDataset
 from torchrl_mbmf.data.transitions import TRAJ_KEY, episode_ends
-from torchrl_mbmf.trainers.checkpointing import DatasetCheckpointAdapter, verify_checkpoint
+from torchrl_mbmf.runs.storage import DatasetCheckpointAdapter, verify_checkpoint
 
 __all__ = [
     "DatasetReplay",
@@ -154,7 +154,7 @@ class DatasetReplay:
     Examples:
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.dataset_replay import DatasetReplay
+        >>> from torchrl_mbmf.runs.dataset_replay import DatasetReplay
         >>> data = collect_random_transitions(make_env("Pendulum-v1", seed=3), 250, seed=3)
         >>> replay = DatasetReplay.from_dataset(data, make_env("Pendulum-v1"), seed=3)
         >>> replay.resets, replay.trajectories
@@ -463,11 +463,11 @@ def compact_checkpoint(
         >>> from pathlib import Path
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.checkpointing import (
-        ...     DatasetCheckpointAdapter, VerifiedCheckpoint, verify_checkpoint)
-        >>> from torchrl_mbmf.trainers.dataset_replay import compact_checkpoint, expand_checkpoint
+        >>> from torchrl_mbmf.runs.storage import (
+        ...     DatasetCheckpointAdapter, SealedWriter, verify_checkpoint)
+        >>> from torchrl_mbmf.runs.dataset_replay import compact_checkpoint, expand_checkpoint
         >>> data = collect_random_transitions(make_env("Pendulum-v1", seed=0), 300, seed=0)
-        >>> checkpoint = VerifiedCheckpoint()
+        >>> checkpoint = SealedWriter()
         >>> _ = checkpoint.register("dataset", data, adapter=DatasetCheckpointAdapter())
         >>> with tempfile.TemporaryDirectory() as d:
         ...     saved = checkpoint.save(Path(d) / "ckpt")
@@ -521,11 +521,11 @@ def expand_checkpoint(checkpoint: str | os.PathLike, env: EnvBase) -> bool:
         >>> from pathlib import Path
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.checkpointing import (
-        ...     DatasetCheckpointAdapter, VerifiedCheckpoint, verify_checkpoint)
-        >>> from torchrl_mbmf.trainers.dataset_replay import compact_checkpoint, expand_checkpoint
+        >>> from torchrl_mbmf.runs.storage import (
+        ...     DatasetCheckpointAdapter, SealedWriter, verify_checkpoint)
+        >>> from torchrl_mbmf.runs.dataset_replay import compact_checkpoint, expand_checkpoint
         >>> data = collect_random_transitions(make_env("Pendulum-v1", seed=0), 300, seed=0)
-        >>> checkpoint = VerifiedCheckpoint()
+        >>> checkpoint = SealedWriter()
         >>> _ = checkpoint.register("dataset", data, adapter=DatasetCheckpointAdapter())
         >>> with tempfile.TemporaryDirectory() as d:
         ...     saved = checkpoint.save(Path(d) / "ckpt")

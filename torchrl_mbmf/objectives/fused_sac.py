@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from tensordict import NestedKey, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import Tensor, nn
-from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
+
+__all__ = ["FusedSACUpdate", "sac_update_step"]
 
 _LOG2 = float(torch.log(torch.tensor(2.0)))
 
@@ -34,7 +35,7 @@ def sac_update_step(
         >>> from torchrl.objectives import SACLoss, SoftUpdate
         >>> from torchrl_mbmf.envs import make_env
         >>> from torchrl_mbmf.modules import make_sac_actor_critic
-        >>> from torchrl_mbmf.trainers.sac import sac_update_step
+        >>> from torchrl_mbmf.objectives.fused_sac import sac_update_step
         >>> env = make_env("Pendulum-v1", seed=0)
         >>> actor, qvalue = make_sac_actor_critic(env, hidden_sizes=(16, 16))
         >>> loss = SACLoss(actor, qvalue, action_spec=env.action_spec_unbatched)
@@ -351,91 +352,6 @@ class FusedSACUpdate:
         return self.update(*(batch.get(key) for key in self.batch_keys))
 
 
-class ReplaySampler:
-    """Draws replay batches as plain tensors, the rows the buffer's own ``sample()`` would draw.
-
-    ``TensorDictReplayBuffer.sample()`` on a ``LazyTensorStorage`` with the stock
-    ``RandomSampler`` draws ``torch.randint(0, len(storage), (batch_size,))`` and gathers the
-    rows through tensordict indexing; this draws the same indices from the same (global) random
-    stream and gathers only the requested entries with :meth:`torch.Tensor.index_select` on
-    views of the storage's preallocated tensors, so a run samples the same rows either way
-    (tested). The buffer keeps owning the data: writes, ``len``, checkpoints
-    (``buffer.storage[:filled]``, ``buffer.writer.state_dict()``) are unchanged. Rows come
-    back as new tensors (the buffer may overwrite its rows later).
-
-    Args:
-        buffer: a ``TensorDictReplayBuffer`` over a ``LazyTensorStorage`` (one-dimensional)
-            with a ``RandomSampler`` (the default).
-        keys: the entries to return, in order (e.g. :attr:`FusedSACUpdate.batch_keys`).
-
-    Keyword Args:
-        batch_size: rows per batch. Defaults to the buffer's batch size.
-
-    Examples:
-        >>> import torch
-        >>> from tensordict import TensorDict
-        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        >>> from torchrl_mbmf.trainers.sac import ReplaySampler
-        >>> buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
-        >>> data = TensorDict({"x": torch.arange(10.0), "next": {"y": torch.ones(10, 2)}}, [10])
-        >>> _ = buffer.extend(data)
-        >>> sampler = ReplaySampler(buffer, ["x", ("next", "y")])
-        >>> x, y = sampler()
-        >>> x.shape, y.shape
-        (torch.Size([4]), torch.Size([4, 2]))
-    """
-
-    def __init__(
-        self,
-        buffer: TensorDictReplayBuffer,
-        keys: Sequence[NestedKey],
-        *,
-        batch_size: int | None = None,
-    ) -> None:
-        if not isinstance(buffer.storage, LazyTensorStorage) or buffer.storage.ndim != 1:
-            raise ValueError(
-                f"ReplaySampler expects a one-dimensional LazyTensorStorage, got {buffer.storage}"
-            )
-        if type(buffer.sampler) is not RandomSampler:
-            raise ValueError(
-                f"ReplaySampler draws what RandomSampler draws, got {type(buffer.sampler).__name__}"
-            )
-        batch_size = buffer.batch_size if batch_size is None else batch_size
-        if batch_size is None or int(batch_size) < 1:
-            raise ValueError(f"ReplaySampler needs a positive batch_size, got {batch_size}")
-        if not keys:
-            raise ValueError("ReplaySampler needs at least one key")
-        self.buffer = buffer
-        self.keys = list(keys)
-        self.batch_size = int(batch_size)
-        self._leaves: list[Tensor] | None = None
-        self._seen = 0
-
-    def refresh(self) -> None:
-        """Looks the storage tensors up again (done automatically when the buffer shrinks)."""
-        storage = self.buffer.storage
-        if len(storage) == 0:
-            raise RuntimeError("ReplaySampler: the replay buffer is empty")
-        first = storage[:1]
-        leaves = []
-        for key in self.keys:
-            row = first.get(key)
-            if not row.is_contiguous():
-                raise ValueError(f"ReplaySampler: storage entry {key!r} is not contiguous")
-            shape = (storage.max_size, *row.shape[1:])
-            leaves.append(row.as_strided(shape, row.stride(), row.storage_offset()))
-        self._leaves = leaves
-
-    def __call__(self) -> tuple[Tensor, ...]:
-        """One batch: a tensor ``[batch_size, ...]`` per key."""
-        filled = len(self.buffer.storage)
-        if self._leaves is None or filled < self._seen:
-            self.refresh()
-        self._seen = filled
-        index = torch.randint(0, filled, (self.batch_size,))
-        return tuple(leaf.index_select(0, index) for leaf in self._leaves)
-
-
 def _mlp_forward(
     linear: list[Tensor], acts: list[Any], x: Tensor
 ) -> tuple[Tensor, list[Tensor], list[Tensor | None]]:
@@ -610,48 +526,3 @@ def _action_bounds(actor: nn.Module) -> tuple[Tensor, Tensor]:
     low = torch.as_tensor(kwargs.get("low", -1.0), dtype=torch.float32)
     high = torch.as_tensor(kwargs.get("high", 1.0), dtype=torch.float32)
     return low, high
-
-
-def keep_freed_memory(mmap_threshold: int = 256 * 2**20, trim_threshold: int = 2**30) -> bool:
-    """Makes glibc's ``malloc`` keep freed memory for reuse instead of unmapping it.
-
-    Eager PyTorch on CPU allocates and frees every intermediate tensor; with glibc's defaults
-    blocks above a (dynamic) threshold are ``mmap``-ed and returned to the system on free, so
-    the next update touches fresh pages and pays a page fault per 4 KiB (about 600 per SAC
-    update at batch 256 with 256-wide networks, a sizeable share of its time on a VM). Raising
-    the mmap and trim thresholds keeps those blocks in the heap. Process-wide and
-    irreversible for the process; it changes no numbers, only where memory comes from (the
-    process keeps up to ``trim_threshold`` bytes of freed memory). Call it once at start-up.
-
-    Args:
-        mmap_threshold: allocations of at least this many bytes are still ``mmap``-ed.
-            Defaults to 256 MiB.
-        trim_threshold: free memory at the top of the heap beyond this is returned to the
-            system. Defaults to 1 GiB.
-
-    Returns:
-        whether the settings were applied (``False`` where the C library is not glibc).
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.sac import keep_freed_memory
-        >>> isinstance(keep_freed_memory(), bool)
-        True
-    """
-    if mmap_threshold <= 0 or trim_threshold <= 0:
-        raise ValueError(
-            f"keep_freed_memory: thresholds must be positive, got {mmap_threshold}, "
-            f"{trim_threshold}"
-        )
-    import ctypes
-    import ctypes.util
-
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc <malloc.h>
-    return bool(mallopt(m_mmap_threshold, int(mmap_threshold))) and bool(
-        mallopt(m_trim_threshold, int(trim_threshold))
-    )

@@ -12,8 +12,8 @@ from tensordict import TensorDictBase
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel, check_ensemble
-from torchrl_mbmf.trainers.fit_history import EnsembleFitHistory
-from torchrl_mbmf.trainers.world_model_fit import fit_world_model
+from torchrl_mbmf.world_model.fit import fit_world_model
+from torchrl_mbmf.world_model.fit_history import EnsembleFitHistory
 
 logger = logging.getLogger(__name__)
 
@@ -26,7 +26,7 @@ def fit_ensemble(
     """Fits every member on its own bootstrap resample, with early stopping on a held-out split.
 
     A thin entry point to the one fitter,
-    :func:`~torchrl_mbmf.trainers.world_model_fit.fit_world_model`. The data handling is
+    :func:`~torchrl_mbmf.world_model.fit.fit_world_model`. The data handling is
     :func:`~torchrl_mbmf.trainers.fit_dynamics`' (the same split for the
     same ``seed``, scaler fitted on the training split, data scaled once, best held-out weights
     restored at the end, warm start from the current weights). Then each member ``k`` draws
@@ -47,7 +47,7 @@ def fit_ensemble(
 
     Keyword Args:
         **kwargs: the settings of
-            :func:`~torchrl_mbmf.trainers.world_model_fit.fit_world_model` (``lr``,
+            :func:`~torchrl_mbmf.world_model.fit.fit_world_model` (``lr``,
             ``batch_size`` per member, ``max_epochs``, ``val_fraction``, ``patience``,
             ``bootstrap``, ``fit_normalizer``, ``seed``, ``progress``, ``optimizer``).
 
@@ -62,7 +62,7 @@ def fit_ensemble(
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_gym_state_env
         >>> from torchrl_mbmf.modules import EnsembleDeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.ensemble_fit import fit_ensemble
+        >>> from torchrl_mbmf.world_model.ensemble_fit import fit_ensemble
         >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 400, seed=0)
         >>> model = EnsembleDeltaDynamicsModel(3, 1, num_members=3, hidden_sizes=(32, 32))
         >>> history = fit_ensemble(model, data, lr=1e-3, batch_size=64, max_epochs=5, seed=0)
@@ -88,7 +88,7 @@ class DisagreementCalibration:
             (near 0 means the disagreement says little about the model's error on this data).
 
     Examples:
-        >>> from torchrl_mbmf.trainers.ensemble_fit import DisagreementCalibration
+        >>> from torchrl_mbmf.world_model.ensemble_fit import DisagreementCalibration
         >>> DisagreementCalibration(0.2, 0.9, 100, 0.01, 0.05, 0.4).threshold
         0.2
     """
@@ -154,7 +154,7 @@ def calibrate_disagreement_threshold(
     Examples:
         >>> import torch
         >>> from torchrl_mbmf.modules import EnsembleDeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.ensemble_fit import calibrate_disagreement_threshold
+        >>> from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold
         >>> model = EnsembleDeltaDynamicsModel(3, 1, num_members=3, hidden_sizes=(16,))
         >>> s, a = torch.randn(200, 3), torch.rand(200, 1) * 2 - 1
         >>> cal = calibrate_disagreement_threshold(model, s, a, s + 0.1, quantile=0.9)

@@ -43,7 +43,7 @@ def transition_tensors(
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from torchrl_mbmf.trainers.fit_data import transition_tensors
+        >>> from torchrl_mbmf.world_model.fit_data import transition_tensors
         >>> td = TensorDict(state=torch.zeros(4, 3), action=torch.zeros(4, 1),
         ...                 next=TensorDict(state=torch.ones(4, 3), reward=torch.ones(4),
         ...                                 batch_size=[4]), batch_size=[4])
@@ -75,7 +75,7 @@ def seeded_generator(seed: int | None) -> torch.Generator:
         seed: the seed, or ``None``.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.fit_data import seeded_generator
+        >>> from torchrl_mbmf.world_model.fit_data import seeded_generator
         >>> seeded_generator(0).initial_seed()
         0
     """
@@ -105,7 +105,7 @@ class FitSplit:
 
     Examples:
         >>> import torch
-        >>> from torchrl_mbmf.trainers.fit_data import FitSplit
+        >>> from torchrl_mbmf.world_model.fit_data import FitSplit
         >>> x = torch.zeros(4, 2)
         >>> FitSplit(torch.arange(3), torch.arange(3, 4), x[:3], x[:3], x[3:], x[3:], None,
         ...          torch.Generator(), torch.device("cpu")).val_x.shape
@@ -135,7 +135,7 @@ def check_fit_settings(
         patience: early-stopping patience, ``>= 1``.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.fit_data import check_fit_settings
+        >>> from torchrl_mbmf.world_model.fit_data import check_fit_settings
         >>> try:
         ...     check_fit_settings(1.5, 64, 10, 3)
         ... except ValueError as err:
@@ -185,7 +185,7 @@ def split_for_fit(
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.fit_data import split_for_fit
+        >>> from torchrl_mbmf.world_model.fit_data import split_for_fit
         >>> td = TensorDict(state=torch.randn(20, 3), action=torch.rand(20, 1),
         ...                 next=TensorDict(state=torch.randn(20, 3), reward=torch.randn(20),
         ...                                 batch_size=[20]), batch_size=[20])
@@ -230,7 +230,7 @@ class StateSnapshot:
 
     Examples:
         >>> import torch
-        >>> from torchrl_mbmf.trainers.fit_data import StateSnapshot
+        >>> from torchrl_mbmf.world_model.fit_data import StateSnapshot
         >>> layer = torch.nn.Linear(2, 2)
         >>> snapshot = StateSnapshot(layer)
         >>> with torch.no_grad():
@@ -269,7 +269,7 @@ def transition_windows(data: TransitionDataset | TensorDictBase, length: int) ->
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from torchrl_mbmf.trainers.fit_data import transition_windows
+        >>> from torchrl_mbmf.world_model.fit_data import transition_windows
         >>> s = torch.arange(4.0).unsqueeze(-1)
         >>> td = TensorDict(state=s, next=TensorDict(state=s + 1, done=torch.zeros(4, 1,
         ...                 dtype=torch.bool), batch_size=[4]), batch_size=[4]).unsqueeze(0)
@@ -319,7 +319,7 @@ class MultiStepWindows:
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from torchrl_mbmf.trainers.fit_data import MultiStepWindows, transition_tensors
+        >>> from torchrl_mbmf.world_model.fit_data import MultiStepWindows, transition_tensors
         >>> s = torch.randn(10, 2)
         >>> td = TensorDict(state=s[:-1], action=torch.zeros(9, 1), next=TensorDict(
         ...     state=s[1:], reward=torch.zeros(9), done=torch.zeros(9, 1, dtype=torch.bool),

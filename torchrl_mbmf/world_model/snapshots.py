@@ -21,7 +21,8 @@ from torch import nn
 from torchrl_mbmf.data.memmap import load_tensor_folder
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.objectives.open_loop import multistep_mse
-from torchrl_mbmf.trainers.checkpointing import verify_checkpoint, write_integrity_record
+from torchrl_mbmf.runs.layout import FITS
+from torchrl_mbmf.runs.storage import verify_checkpoint, write_integrity_record
 
 __all__ = [
     "FIT_FOLDER",
@@ -33,7 +34,7 @@ __all__ = [
 ]
 
 #: Folder of a run that holds one snapshot per world-model fit.
-FIT_FOLDER = "world_models"
+FIT_FOLDER = FITS
 #: Horizons of the held-out open-loop errors (thesis experiment 1).
 HELDOUT_HORIZONS = (5, 10, 25)
 
@@ -56,7 +57,7 @@ def save_fit_snapshot(model: nn.Module, run_dir: str | os.PathLike, transitions:
     Examples:
         >>> import tempfile, torch
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.fit_records import load_fit_snapshot, save_fit_snapshot
+        >>> from torchrl_mbmf.world_model.snapshots import load_fit_snapshot, save_fit_snapshot
         >>> model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
         >>> folder = save_fit_snapshot(model, tempfile.mkdtemp(), 200)
         >>> folder.name
@@ -99,7 +100,7 @@ def load_fit_snapshot(model: nn.Module, folder: str | os.PathLike) -> nn.Module:
     Examples:
         >>> import tempfile
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.fit_records import load_fit_snapshot, save_fit_snapshot
+        >>> from torchrl_mbmf.world_model.snapshots import load_fit_snapshot, save_fit_snapshot
         >>> net = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
         >>> folder = save_fit_snapshot(net, tempfile.mkdtemp(), 5)
         >>> model = load_fit_snapshot(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), folder)
@@ -119,7 +120,7 @@ def fit_snapshots(run_dir: str | os.PathLike) -> list[tuple[int, Path]]:
 
     Examples:
         >>> import tempfile
-        >>> from torchrl_mbmf.trainers.fit_records import fit_snapshots
+        >>> from torchrl_mbmf.world_model.snapshots import fit_snapshots
         >>> fit_snapshots(tempfile.mkdtemp())
         []
     """
@@ -164,7 +165,7 @@ def heldout_open_loop_errors(
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_gym_state_env
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.fit_records import heldout_open_loop_errors
+        >>> from torchrl_mbmf.world_model.snapshots import heldout_open_loop_errors
         >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 400, seed=0)
         >>> errors = heldout_open_loop_errors(
         ...     DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), data, since=200, horizons=(1, 5))

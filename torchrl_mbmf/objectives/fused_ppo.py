@@ -20,6 +20,8 @@ from torchrl.objectives.value.functional import (
     vec_generalized_advantage_estimate,
 )
 
+__all__ = ["FusedPPOUpdate", "ppo_update"]
+
 #: Loss entries averaged into the logged statistics.
 PPO_STATS: tuple[str, ...] = ("loss_objective", "loss_critic", "loss_entropy", "kl_approx")
 
@@ -61,7 +63,7 @@ def ppo_update(
         >>> from torchrl.objectives.value import GAE
         >>> from torchrl_mbmf.envs import make_gym_state_env
         >>> from torchrl_mbmf.modules import make_ppo_actor_critic
-        >>> from torchrl_mbmf.trainers.ppo import ppo_update
+        >>> from torchrl_mbmf.objectives.fused_ppo import ppo_update
         >>> env = make_gym_state_env("Pendulum-v1")
         >>> actor, critic = make_ppo_actor_critic(env, hidden_sizes=(16, 16))
         >>> loss = ClipPPOLoss(actor, critic)
@@ -160,7 +162,7 @@ class FusedPPOUpdate:
         >>> from torchrl.objectives.value import GAE
         >>> from torchrl_mbmf.envs import make_env
         >>> from torchrl_mbmf.modules import make_ppo_actor_critic
-        >>> from torchrl_mbmf.trainers.ppo import FusedPPOUpdate
+        >>> from torchrl_mbmf.objectives.fused_ppo import FusedPPOUpdate
         >>> env = make_env("Pendulum-v1", seed=0)
         >>> actor, critic = make_ppo_actor_critic(env, hidden_sizes=(16, 16))
         >>> loss = ClipPPOLoss(actor, critic, normalize_advantage=True)

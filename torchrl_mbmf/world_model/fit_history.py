@@ -31,7 +31,7 @@ def check_early_stopping(value: Any, *, key: str = "early_stopping") -> EarlySto
         key: its name in the error message. Defaults to ``"early_stopping"``.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.fit_history import check_early_stopping
+        >>> from torchrl_mbmf.world_model.fit_history import check_early_stopping
         >>> check_early_stopping("one_step")
         'one_step'
     """
@@ -57,7 +57,7 @@ class FitRecord:
         seconds: wall time of the fit.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.fit_history import FitRecord
+        >>> from torchrl_mbmf.world_model.fit_history import FitRecord
         >>> FitRecord([1.0, 0.5], [1.1, 0.6]).to_dict()["epochs"]
         2
     """
@@ -119,7 +119,7 @@ class FitHistory(FitRecord):
             :data:`EarlyStopping`).
 
     Examples:
-        >>> from torchrl_mbmf.trainers import FitHistory
+        >>> from torchrl_mbmf.world_model import FitHistory
         >>> FitHistory([1.0, 0.5], [1.1, 0.6], best_epoch=1, best_val_loss=0.6).epochs
         2
     """
@@ -159,7 +159,7 @@ class EnsembleFitHistory(FitRecord):
             trained on: the data to calibrate the disagreement threshold on. Not serialised.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.ensemble_fit import EnsembleFitHistory
+        >>> from torchrl_mbmf.world_model.ensemble_fit import EnsembleFitHistory
         >>> h = EnsembleFitHistory([1.0, 0.5], [1.1, 0.6], member_val_loss=[0.5, 0.7])
         >>> h.epochs, h.to_dict()["member_val_loss"]
         (2, [0.5, 0.7])
@@ -201,7 +201,7 @@ def dynamics_optimizer(
 
     Examples:
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> from torchrl_mbmf.trainers.dynamics import dynamics_optimizer
+        >>> from torchrl_mbmf.world_model.fit import dynamics_optimizer
         >>> optimizer = dynamics_optimizer(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)))
         >>> optimizer.defaults["lr"], optimizer.defaults["fused"]
         (0.0001, None)

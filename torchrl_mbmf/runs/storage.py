@@ -1,6 +1,7 @@
-"""Verified, pickle-free checkpoints for the training loop.
+"""How a checkpoint folder is written and checked: integrity records and pickle-free adapters.
 
-Every checkpoint is written by :class:`VerifiedCheckpoint` (a ``torchrl.checkpoint.Checkpoint``
+What a checkpoint holds is :class:`~torchrl_mbmf.runs.checkpoint.RunCheckpoint`. Every checkpoint
+folder is written by :class:`SealedWriter` (a ``torchrl.checkpoint.Checkpoint``
 whose save adds an integrity record, ``integrity.json``, holding the size and SHA-256 of every
 file, written last inside the staging folder before the atomic rename) and restored only after
 :func:`verify_checkpoint` has checked that record. :func:`latest_intact_checkpoint` picks the
@@ -51,8 +52,8 @@ __all__ = [
     "DamagedCheckpointWarning",
     "DatasetCheckpointAdapter",
     "ReplayCheckpointAdapter",
+    "SealedWriter",
     "TensorStateAdapter",
-    "VerifiedCheckpoint",
     "latest_intact_checkpoint",
     "verify_checkpoint",
     "write_integrity_record",
@@ -86,7 +87,7 @@ def _files_below(root: Path) -> list[Path]:
 def write_integrity_record(path: str | os.PathLike) -> Path:
     """Writes ``integrity.json``: the size and SHA-256 of every other file below ``path``.
 
-    :class:`VerifiedCheckpoint` calls it last, inside its staging folder, before the rename.
+    :class:`SealedWriter` calls it last, inside its staging folder, before the rename.
 
     Args:
         path: the checkpoint folder.
@@ -97,7 +98,7 @@ def write_integrity_record(path: str | os.PathLike) -> Path:
     Examples:
         >>> import json, tempfile
         >>> from pathlib import Path
-        >>> from torchrl_mbmf.trainers.checkpointing import write_integrity_record
+        >>> from torchrl_mbmf.runs.storage import write_integrity_record
         >>> with tempfile.TemporaryDirectory() as d:
         ...     _ = (Path(d) / "a.txt").write_text("hi")
         ...     record = json.loads(write_integrity_record(d).read_text())
@@ -126,7 +127,7 @@ def write_integrity_record(path: str | os.PathLike) -> Path:
 def verify_checkpoint(path: str | os.PathLike) -> None:
     """Checks every file of a checkpoint against its integrity record.
 
-    The record (``integrity.json``, written last by :class:`VerifiedCheckpoint`) lists each
+    The record (``integrity.json``, written last by :class:`SealedWriter`) lists each
     file's size and SHA-256. A file that is missing, of another size or content, a file the
     record does not list, a symbolic link, or a missing or unreadable record all fail.
 
@@ -139,9 +140,9 @@ def verify_checkpoint(path: str | os.PathLike) -> None:
     Examples:
         >>> import tempfile, torch
         >>> from pathlib import Path
-        >>> from torchrl_mbmf.trainers.checkpointing import (
-        ...     CheckpointIntegrityError, TensorStateAdapter, VerifiedCheckpoint, verify_checkpoint)
-        >>> checkpoint = VerifiedCheckpoint()
+        >>> from torchrl_mbmf.runs.storage import (
+        ...     CheckpointIntegrityError, TensorStateAdapter, SealedWriter, verify_checkpoint)
+        >>> checkpoint = SealedWriter()
         >>> _ = checkpoint.register("net", torch.nn.Linear(2, 1), adapter=TensorStateAdapter())
         >>> with tempfile.TemporaryDirectory() as d:
         ...     path = checkpoint.save(Path(d) / "ckpt")
@@ -194,7 +195,7 @@ def verify_checkpoint(path: str | os.PathLike) -> None:
             raise CheckpointIntegrityError(f"{file} does not match its SHA-256 (content changed)")
 
 
-class VerifiedCheckpoint(Checkpoint):
+class SealedWriter(Checkpoint):
     """A ``torchrl.checkpoint.Checkpoint`` whose saves carry an integrity record.
 
     ``save`` lets torchrl write the checkpoint into a hidden staging folder, adds
@@ -210,12 +211,12 @@ class VerifiedCheckpoint(Checkpoint):
     Examples:
         >>> import tempfile, torch
         >>> from pathlib import Path
-        >>> from torchrl_mbmf.trainers.checkpointing import TensorStateAdapter, VerifiedCheckpoint
+        >>> from torchrl_mbmf.runs.storage import TensorStateAdapter, SealedWriter
         >>> source, target = torch.nn.Linear(2, 1), torch.nn.Linear(2, 1)
         >>> with tempfile.TemporaryDirectory() as d:
-        ...     saver = VerifiedCheckpoint().register("net", source, adapter=TensorStateAdapter())
+        ...     saver = SealedWriter().register("net", source, adapter=TensorStateAdapter())
         ...     path = saver.save(Path(d) / "ckpt")
-        ...     loader = VerifiedCheckpoint().register("net", target, adapter=TensorStateAdapter())
+        ...     loader = SealedWriter().register("net", target, adapter=TensorStateAdapter())
         ...     print(sorted(loader.load(path).loaded), (path / "integrity.json").exists())
         ['net'] True
         >>> torch.equal(source.weight, target.weight)
@@ -224,9 +225,7 @@ class VerifiedCheckpoint(Checkpoint):
 
     def __init__(self, **kwargs: Any) -> None:
         if kwargs.get("format", "directory") != "directory":
-            raise ValueError(
-                f"VerifiedCheckpoint writes folders only, got format={kwargs['format']!r}"
-            )
+            raise ValueError(f"SealedWriter writes folders only, got format={kwargs['format']!r}")
         super().__init__(**kwargs)
 
     def save(
@@ -255,14 +254,14 @@ class VerifiedCheckpoint(Checkpoint):
         Examples:
             >>> import tempfile
             >>> from pathlib import Path
-            >>> from torchrl_mbmf.trainers.checkpointing import VerifiedCheckpoint
+            >>> from torchrl_mbmf.runs.storage import SealedWriter
             >>> with tempfile.TemporaryDirectory() as d:
-            ...     path = VerifiedCheckpoint(progress={"step": 3}).save(Path(d) / "c")
+            ...     path = SealedWriter(progress={"step": 3}).save(Path(d) / "c")
             ...     print(sorted(p.name for p in path.iterdir()))
             ['components', 'integrity.json', 'manifest.json']
         """
         if format not in (None, "directory"):
-            raise ValueError(f"VerifiedCheckpoint writes folders only, got format={format!r}")
+            raise ValueError(f"SealedWriter writes folders only, got format={format!r}")
         destination = Path(path).expanduser().absolute()
         destination.parent.mkdir(parents=True, exist_ok=True)
         token = uuid.uuid4().hex
@@ -289,7 +288,7 @@ class VerifiedCheckpoint(Checkpoint):
 
 def _remove_staging_leftovers(directory: Path, prefix: str) -> None:
     """Removes hidden folders/files an interrupted save or prune left (never loaded)."""
-    # torchrl's own staging of a VerifiedCheckpoint save is named "..<prefix>-<step>..."
+    # torchrl's own staging of a SealedWriter save is named "..<prefix>-<step>..."
     staging = re.compile(rf"\.+{re.escape(prefix)}-\d+\..+")
     for entry in directory.iterdir():
         if staging.fullmatch(entry.name):
@@ -323,12 +322,12 @@ def latest_intact_checkpoint(rotation: CheckpointRotation) -> Path | None:
         >>> import tempfile
         >>> from pathlib import Path
         >>> from torchrl.checkpoint import CheckpointRotation
-        >>> from torchrl_mbmf.trainers.checkpointing import (
-        ...     VerifiedCheckpoint, latest_intact_checkpoint)
+        >>> from torchrl_mbmf.runs.storage import (
+        ...     SealedWriter, latest_intact_checkpoint)
         >>> with tempfile.TemporaryDirectory() as d:
         ...     rotation = CheckpointRotation(Path(d), keep_last=2)
         ...     for step in (1, 2):
-        ...         _ = rotation.save(VerifiedCheckpoint(progress={"step": step}), step=step)
+        ...         _ = rotation.save(SealedWriter(progress={"step": step}), step=step)
         ...     (rotation.latest() / "manifest.json").write_text("{}")  # damage the newest
         ...     import warnings
         ...     with warnings.catch_warnings(record=True) as caught:
@@ -512,7 +511,7 @@ class TensorStateAdapter(CheckpointAdapter):
     Examples:
         >>> import tempfile, torch
         >>> from pathlib import Path
-        >>> from torchrl_mbmf.trainers.checkpointing import TensorStateAdapter
+        >>> from torchrl_mbmf.runs.storage import TensorStateAdapter
         >>> source, target = torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
         >>> with tempfile.TemporaryDirectory() as d:
         ...     TensorStateAdapter().save(source, Path(d), args=(), kwargs={})
@@ -587,7 +586,7 @@ class DatasetCheckpointAdapter(CheckpointAdapter):
         >>> from pathlib import Path
         >>> from torchrl_mbmf.data import collect_random_transitions
         >>> from torchrl_mbmf.envs import make_gym_state_env
-        >>> from torchrl_mbmf.trainers.checkpointing import DatasetCheckpointAdapter
+        >>> from torchrl_mbmf.runs.storage import DatasetCheckpointAdapter
         >>> env = make_gym_state_env("Pendulum-v1")
         >>> source = collect_random_transitions(env, 20, seed=0)
         >>> target = collect_random_transitions(env, 5, seed=1)
@@ -640,7 +639,7 @@ class ReplayCheckpointAdapter(CheckpointAdapter):
         >>> from pathlib import Path
         >>> from tensordict import TensorDict
         >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        >>> from torchrl_mbmf.trainers.checkpointing import ReplayCheckpointAdapter
+        >>> from torchrl_mbmf.runs.storage import ReplayCheckpointAdapter
         >>> source = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
         >>> _ = source.extend(TensorDict({"obs": torch.arange(7.0)}, [7]))
         >>> target = TensorDictReplayBuffer(storage=LazyTensorStorage(100))

@@ -1,159 +1,51 @@
-"""Checkpoint, resume and provenance of a run folder.
+"""A run's checkpoint: what it holds, when it is written, and the resume from it.
 
-:class:`RunCheckpoint` registers a run's components with their pickle-free adapters
-(:mod:`torchrl_mbmf.trainers.checkpointing`), writes rotated checkpoints and resumes from the
-newest intact one, refusing any changed setting that affects training. :func:`fingerprint`
-is the record of settings a checkpoint must agree on; :func:`write_run_record` writes what a
-run ran with (config, commit, machine).
+A checkpoint is a folder ``<run_dir>/checkpoints/<step>/`` written by :class:`RunCheckpoint`
+(rotated, verified, no pickle). It holds, under these component names:
+
+- ``progress``: the loop's progress record (JSON), with the run's config and fingerprint;
+- the tensor state of each part the trainer registers: the agent's networks, optimiser and
+  loss state (``PPOAgent`` / ``SACAgent.checkpoint_components``) and, for model-based
+  methods, the world model and its optimiser (``WorldModelPart.checkpoint_components``);
+- ``rng``: the global random states (Python, NumPy, torch);
+- ``logger``: the logger's state (the CSV rows written so far), when it has one;
+- ``dataset``: the real-transition dataset (model-based methods), left out where the
+  schedule no longer needs it (after planning ends);
+- ``replay``: SAC's replay buffer entries.
+
+Beside each checkpoint the trained policy is exported (``policy.pt``). How the folders are
+written and checked is :mod:`torchrl_mbmf.runs.storage`; what a resume may change is
+:mod:`torchrl_mbmf.runs.resume`; a compact, committable form of a checkpoint is
+:func:`~torchrl_mbmf.runs.dataset_replay.compact_checkpoint`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import os
-import platform
-import subprocess
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
 from torchrl.checkpoint import CheckpointRotation, GlobalRNGState, JSONCheckpointAdapter
 from torchrl.record.loggers import CSVLogger
 
-from torchrl_mbmf.trainers.checkpointing import (
+from torchrl_mbmf.checks import ConfigError
+from torchrl_mbmf.runs.export import save_policy
+from torchrl_mbmf.runs.layout import CHECKPOINTS
+from torchrl_mbmf.runs.logs import append_resume_log, cut_csv_logs
+from torchrl_mbmf.runs.resume import RESUME_SAFE_SETTINGS, resume_changes
+from torchrl_mbmf.runs.storage import (
     DatasetCheckpointAdapter,
     ReplayCheckpointAdapter,
+    SealedWriter,
     TensorStateAdapter,
-    VerifiedCheckpoint,
     latest_intact_checkpoint,
 )
-from torchrl_mbmf.trainers.config import (
-    MODEL_BASED,
-    PPO_METHODS,
-    RESUME_SAFE_SETTINGS,
-    ConfigError,
-    resume_changes,
-)
-from torchrl_mbmf.trainers.export import save_policy
-from torchrl_mbmf.trainers.resume_logs import append_resume_log, cut_csv_logs
 
-__all__ = ["RunCheckpoint", "fingerprint", "git_commit", "machine_record", "write_run_record"]
+__all__ = ["RunCheckpoint"]
 
 logger = logging.getLogger(__name__)
-
-
-def fingerprint(cfg: Any) -> dict[str, Any]:
-    """Config entries a checkpoint must agree on to be resumed (kept for old checkpoints).
-
-    Args:
-        cfg: the training config.
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"method": "ppo", "env": {"id": "E", "num_envs": 1},
-        ...     "reward": {"name": "default"}, "seed": 0,
-        ...     "ppo": {"hidden_sizes": [8], "frames_per_batch": 64}})
-        >>> fingerprint(cfg)["ppo.hidden_sizes"]
-        [8]
-    """
-    algo = "ppo" if cfg.method in PPO_METHODS else "sac"
-    out = {
-        "method": cfg.method,
-        "env.id": cfg.env.id,
-        "env.num_envs": int(cfg.env.num_envs),
-        "reward": OmegaConf.to_container(cfg.reward, resolve=True),
-        "seed": int(cfg.seed),
-        f"{algo}.hidden_sizes": list(cfg[algo].hidden_sizes),
-        f"{algo}.frames_per_batch": int(cfg[algo].frames_per_batch),
-    }
-    if cfg.method in MODEL_BASED:
-        out["world_model.hidden_sizes"] = list(cfg.world_model.hidden_sizes)
-        out["world_model.random_steps"] = int(cfg.world_model.random_steps)
-        for key in ("ensemble_size", "probabilistic", "multi_step", "multi_step_weight"):
-            if key in cfg.world_model:
-                out[f"world_model.{key}"] = cfg.world_model[key]
-        planner = OmegaConf.to_container(cfg.planner, resolve=True)
-        # the builder's name is no setting of the planner (fingerprints predate it)
-        out["planner"] = {k: v for k, v in planner.items() if k != "_target_"}
-    if cfg.method in ("mpc", "ppo_mpc"):
-        out["planning_updates"] = int(cfg.planning_updates)
-    return out
-
-
-def machine_record() -> dict[str, Any]:
-    """Software and hardware this process runs on (written beside a run's config).
-
-    Examples:
-        >>> sorted(machine_record())[:4]
-        ['cpu', 'cpu_capability', 'cpu_count', 'machine']
-    """
-    import torchrl
-
-    return {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torchrl": torchrl.__version__,
-        "cpu_count": os.cpu_count(),
-        "machine": platform.machine(),
-        # float results differ between CPUs whose kernels differ (one run on two machines)
-        "cpu": _cpu_model(),
-        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "torch_threads": torch.get_num_threads(),
-    }
-
-
-def _cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``; the platform's processor string elsewhere)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def git_commit() -> str:
-    """The package's git commit, ``"unknown"`` outside a checkout.
-
-    Examples:
-        >>> isinstance(git_commit(), str)
-        True
-    """
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=5,
-            cwd=Path(__file__).resolve().parent,
-        )
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def write_run_record(run_dir: Path, cfg: Any) -> None:
-    """Writes ``config.yaml``, ``git_commit.txt`` and ``machine.json`` into ``run_dir``.
-
-    Args:
-        run_dir: the run folder.
-        cfg: the training config (written resolved).
-
-    Examples:
-        >>> import tempfile
-        >>> from omegaconf import OmegaConf
-        >>> with tempfile.TemporaryDirectory() as d:
-        ...     write_run_record(Path(d), OmegaConf.create({"seed": 0}))
-        ...     sorted(p.name for p in Path(d).iterdir())
-        ['config.yaml', 'git_commit.txt', 'machine.json']
-    """
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    (run_dir / "git_commit.txt").write_text(git_commit() + "\n")
-    (run_dir / "machine.json").write_text(json.dumps(machine_record(), indent=2) + "\n")
 
 
 class RunCheckpoint:
@@ -161,7 +53,7 @@ class RunCheckpoint:
 
     Every component is restored without pickle, and only after the whole checkpoint passed its
     integrity record. A resume compares the saved config with this run's first and refuses
-    any change outside :data:`~torchrl_mbmf.trainers.config.RESUME_SAFE_SETTINGS` (naming
+    any change outside :data:`~torchrl_mbmf.runs.resume.RESUME_SAFE_SETTINGS` (naming
     each, with both values); it records the allowed ones in ``resume_log.json`` and cuts the
     CSV logs back to the checkpoint (removes them when there is none).
 
@@ -209,7 +101,7 @@ class RunCheckpoint:
         self.progress = progress
         self.logger = logger
         self.backend = backend
-        checkpoint = VerifiedCheckpoint()
+        checkpoint = SealedWriter()
         checkpoint.register("progress", progress, adapter=JSONCheckpointAdapter())
         components = {**tensors, "rng": GlobalRNGState()}
         if logger is not None and hasattr(logger, "state_dict"):
@@ -228,7 +120,7 @@ class RunCheckpoint:
             self.names.append("dataset")
         if replay is not None:
             self.names.append("replay")
-        self.rotation = CheckpointRotation(self.run_dir / "checkpoints", keep_last=keep_last)
+        self.rotation = CheckpointRotation(self.run_dir / CHECKPOINTS, keep_last=keep_last)
 
     def save(self, actor: torch.nn.Module) -> None:
         """Atomically writes a checkpoint at the current step (once per step) and the policy."""

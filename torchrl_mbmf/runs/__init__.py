@@ -1,0 +1,20 @@
+"""The run folder on disk: its files, checkpoints, resume, logs, exported policy, compact data."""
+
+from torchrl_mbmf.runs.checkpoint import RunCheckpoint
+from torchrl_mbmf.runs.dataset_replay import DatasetReplay, compact_checkpoint, expand_checkpoint
+from torchrl_mbmf.runs.export import load_policy, save_policy, variant_tag
+from torchrl_mbmf.runs.layout import RunFolder, write_run_record
+from torchrl_mbmf.runs.resume import fingerprint
+
+__all__ = [
+    "DatasetReplay",
+    "RunCheckpoint",
+    "RunFolder",
+    "compact_checkpoint",
+    "expand_checkpoint",
+    "fingerprint",
+    "load_policy",
+    "save_policy",
+    "variant_tag",
+    "write_run_record",
+]

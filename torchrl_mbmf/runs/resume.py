@@ -1,0 +1,149 @@
+"""What a resume may change: the resume-safe settings, the config comparison, the fingerprint.
+
+:class:`~torchrl_mbmf.runs.checkpoint.RunCheckpoint` resumes a run; here are the rules it
+applies. :data:`RESUME_SAFE_SETTINGS` are the settings a resumed run may change,
+:func:`resume_changes` splits two configs' differences into refused and allowed ones,
+:func:`fingerprint` is the older record of settings a checkpoint must agree on, and
+:data:`DEFAULT_TARGETS` what a config written before the groups named their builders means.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from torchrl_mbmf.methods import MODEL_BASED, PPO_METHODS
+
+__all__ = [
+    "DEFAULT_TARGETS",
+    "RESUME_SAFE_SETTINGS",
+    "fingerprint",
+    "resume_changes",
+]
+
+logger = logging.getLogger(__name__)
+
+#: The builder of each component group, used for a config that has no ``_target_`` (a run
+#: folder's ``config.yaml`` written before the groups named their builders): such a config
+#: means exactly these.
+DEFAULT_TARGETS: dict[str, str] = {
+    "ppo": "torchrl_mbmf.trainers.agents.PPOAgent",
+    "sac": "torchrl_mbmf.trainers.agents.SACAgent",
+    "world_model": "torchrl_mbmf.trainers.planning.WorldModelPart",
+    "planner": "torchrl_mbmf.trainers.planning.make_planner",
+    "logger": "torchrl_mbmf.trainers.build.make_logger",
+}
+
+#: Settings a resumed run may change: they do not change what is trained (the budget, the
+#: progress bar, torch threads, evaluation and checkpoint retention, folder names). Every other
+#: setting is refused on resume, since the checkpoint's weights, optimisers and data were made
+#: with the old value. Not here on purpose: ``checkpoint.every_steps`` (each checkpoint ends the
+#: episode in progress, so moving them changes the data) and ``logger.backend`` (the logs would
+#: be split across backends). Entries ending in ``.`` are prefixes.
+RESUME_SAFE_SETTINGS: tuple[str, ...] = (
+    "total_steps",
+    "progress",
+    "threads",
+    "eval_every",
+    "eval_episodes",
+    "checkpoint.keep_last",
+    "world_model.save_fits",
+    "run_dir",
+    "run_name",
+    "budget.name",
+    "experiment.",
+)
+
+
+def resume_changes(
+    saved: Mapping[str, Any], now: Mapping[str, Any]
+) -> tuple[dict[str, tuple[Any, Any]], dict[str, tuple[Any, Any]]]:
+    """Splits the differences of two flattened configs into refused and allowed changes.
+
+    Args:
+        saved: the flattened config the checkpoint was written with.
+        now: the flattened config of the resuming run.
+
+    Returns:
+        ``(refused, allowed)``, each ``{key: (saved value, new value)}``; a key missing on one
+        side has the value ``"<missing>"`` there, except a group's ``_target_``, which a
+        config without one means to be the group's default builder
+        (:data:`DEFAULT_TARGETS`). ``allowed`` holds the keys of
+        :data:`RESUME_SAFE_SETTINGS`.
+
+    Examples:
+        >>> from torchrl_mbmf.runs.resume import resume_changes
+        >>> resume_changes({"ppo.lr": 3e-4, "total_steps": 400},
+        ...                {"ppo.lr": 0.01, "total_steps": 800})
+        ({'ppo.lr': (0.0003, 0.01)}, {'total_steps': (400, 800)})
+    """
+    missing = "<missing>"
+    refused: dict[str, tuple[Any, Any]] = {}
+    allowed: dict[str, tuple[Any, Any]] = {}
+    for key in sorted(set(saved) | set(now)):
+        old, new = saved.get(key, _implied(key, missing)), now.get(key, _implied(key, missing))
+        if _same(old, new):
+            continue
+        safe = any(
+            key == s or (s.endswith(".") and key.startswith(s)) for s in RESUME_SAFE_SETTINGS
+        )
+        (allowed if safe else refused)[key] = (old, new)
+    return refused, allowed
+
+
+def _implied(key: str, missing: str) -> str:
+    """The value a config without ``key`` means (``missing`` but for a group's ``_target_``).
+
+    A config written before the groups named their builders means the default ones.
+    """
+    group, _, name = key.partition(".")
+    return DEFAULT_TARGETS[group] if name == "_target_" and group in DEFAULT_TARGETS else missing
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, bool) or isinstance(b, bool):
+        return type(a) is type(b) and a == b
+    return a == b
+
+
+def fingerprint(cfg: Any) -> dict[str, Any]:
+    """Config entries a checkpoint must agree on to be resumed (kept for old checkpoints).
+
+    Args:
+        cfg: the training config.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"method": "ppo", "env": {"id": "E", "num_envs": 1},
+        ...     "reward": {"name": "default"}, "seed": 0,
+        ...     "ppo": {"hidden_sizes": [8], "frames_per_batch": 64}})
+        >>> fingerprint(cfg)["ppo.hidden_sizes"]
+        [8]
+    """
+    algo = "ppo" if cfg.method in PPO_METHODS else "sac"
+    out = {
+        "method": cfg.method,
+        "env.id": cfg.env.id,
+        "env.num_envs": int(cfg.env.num_envs),
+        "reward": OmegaConf.to_container(cfg.reward, resolve=True),
+        "seed": int(cfg.seed),
+        f"{algo}.hidden_sizes": list(cfg[algo].hidden_sizes),
+        f"{algo}.frames_per_batch": int(cfg[algo].frames_per_batch),
+    }
+    if cfg.method in MODEL_BASED:
+        out["world_model.hidden_sizes"] = list(cfg.world_model.hidden_sizes)
+        out["world_model.random_steps"] = int(cfg.world_model.random_steps)
+        for key in ("ensemble_size", "probabilistic", "multi_step", "multi_step_weight"):
+            if key in cfg.world_model:
+                out[f"world_model.{key}"] = cfg.world_model[key]
+        planner = OmegaConf.to_container(cfg.planner, resolve=True)
+        # the builder's name is no setting of the planner (fingerprints predate it)
+        out["planner"] = {k: v for k, v in planner.items() if k != "_target_"}
+    if cfg.method in ("mpc", "ppo_mpc"):
+        out["planning_updates"] = int(cfg.planning_updates)
+    return out

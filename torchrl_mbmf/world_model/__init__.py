@@ -1,0 +1,40 @@
+"""Fitting the world model: the one fitter, its data split, history, ensembles and snapshots.
+
+Used alone by the analysis and the benchmarks; nothing here imports the training loop.
+"""
+
+from torchrl_mbmf.world_model.ensemble_fit import (
+    DisagreementCalibration,
+    calibrate_disagreement_threshold,
+    fit_ensemble,
+)
+from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs, fit_world_model
+from torchrl_mbmf.world_model.fit_data import transition_tensors
+from torchrl_mbmf.world_model.fit_history import (
+    EnsembleFitHistory,
+    FitHistory,
+    dynamics_optimizer,
+)
+from torchrl_mbmf.world_model.snapshots import (
+    fit_snapshots,
+    heldout_open_loop_errors,
+    load_fit_snapshot,
+    save_fit_snapshot,
+)
+
+__all__ = [
+    "DisagreementCalibration",
+    "EnsembleFitHistory",
+    "FitHistory",
+    "calibrate_disagreement_threshold",
+    "dynamics_optimizer",
+    "fit_dynamics",
+    "fit_dynamics_kwargs",
+    "fit_ensemble",
+    "fit_snapshots",
+    "fit_world_model",
+    "heldout_open_loop_errors",
+    "load_fit_snapshot",
+    "save_fit_snapshot",
+    "transition_tensors",
+]
