@@ -35,7 +35,7 @@ from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.envs import LearnedDynamicsEnv, make_gym_state_env
 from torchrl_mbmf.envs.terminations import NeverTerminates
 from torchrl_mbmf.modules import DeltaDynamicsModel, RandomShootingMPCPlanner
-from torchrl_mbmf.trainers import fit_dynamics
+from torchrl_mbmf.world_model import fit_dynamics
 
 ENV_ID = "Hopper-v5"
 KWARGS = {"exclude_current_positions_from_observation": False}

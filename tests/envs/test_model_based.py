@@ -238,3 +238,38 @@ def test_plain_gym_env_any_keys():
     )
     check_env_specs(env)
     assert set(env.observation_spec.keys()) == {"s", "obs"}
+
+
+def test_fit_and_dataset_read_the_same_state_key():
+    from torchrl.envs import GymEnv
+
+    from torchrl_mbmf.data import collect_random_transitions
+    from torchrl_mbmf.world_model import fit_dynamics
+
+    real = GymEnv("Pendulum-v1")
+    data = collect_random_transitions(real, 300, seed=0, state_key="observation")
+    assert data.state_key == "observation"
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(16,))
+    LearnedDynamicsEnv(model, real, state_key="observation")  # adopts [-2, 2] before the fit
+    history = fit_dynamics(model, data, batch_size=64, max_epochs=2, seed=0)
+    assert len(history.val_loss) == 2
+    with pytest.raises(ValueError, match="state_key='state' but the dataset stores 'observation'"):
+        fit_dynamics(model, data, max_epochs=1, state_key="state")
+    # a TensorDict of transitions under other keys: the same fit as under the default ones
+    td = data.tensors().clone()
+    renamed = td.clone()
+    renamed.rename_key_("observation", "obs")
+    renamed.rename_key_(("next", "observation"), ("next", "obs"))
+    td.rename_key_("observation", "state")
+    td.rename_key_(("next", "observation"), ("next", "state"))
+    fits = []
+    for transitions, key in ((td, None), (renamed, "obs")):
+        torch.manual_seed(0)
+        m = DeltaDynamicsModel(3, 1, hidden_sizes=(16,), action_low=-2.0, action_high=2.0)
+        fits.append(
+            fit_dynamics(m, transitions, max_epochs=2, batch_size=64, seed=0, state_key=key)
+        )
+    assert fits[0].val_loss == fits[1].val_loss
+    assert "state" not in set(renamed.keys())  # the caller's data is left as it was
+    with pytest.raises(KeyError, match=r"no .*nope.* entry"):
+        fit_dynamics(m, renamed, max_epochs=1, state_key="nope")
