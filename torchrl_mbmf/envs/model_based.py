@@ -47,7 +47,9 @@ def _unbounded_like(spec: TensorSpec) -> Unbounded:
     return Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
 
 
-def _check_termination_fn(fn: TerminationFn, state_dim: int) -> None:
+def _check_termination_fn(
+    fn: TerminationFn, state_dim: int, device: torch.device, dtype: torch.dtype
+) -> None:
     """Calls ``fn`` on two zero states: it must return a bool tensor ``[2]``."""
     if not callable(fn):
         raise TypeError(f"termination_fn must be a callable on states or None, got {fn!r}")
@@ -57,7 +59,7 @@ def _check_termination_fn(fn: TerminationFn, state_dim: int) -> None:
             f"world model's state has {state_dim}"
         )
     with torch.no_grad():
-        out = fn(torch.zeros(2, state_dim))
+        out = fn(torch.zeros(2, state_dim, device=device, dtype=dtype))
     if not isinstance(out, torch.Tensor) or out.dtype != torch.bool or out.shape != (2,):
         got = (
             f"{out.dtype} tensor of shape {tuple(out.shape)}"
@@ -278,7 +280,9 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         _adopt_action_bounds(world_model, action_spec, action_key)
         if termination_fn is None:
             termination_fn = termination_rule_of_env(env)
-        _check_termination_fn(termination_fn, world_model.state_dim)
+        _check_termination_fn(
+            termination_fn, world_model.state_dim, torch.device(self.device), model_dtype
+        )
         self.termination_fn = termination_fn
         self._starts = _RealStarts(env, state_key)
         if observation_key is not None and (
