@@ -241,3 +241,17 @@ def test_overridden_horizon_mask_is_honoured(hopper, actor):
     out = plain.rollout(td["state"])
     torch.testing.assert_close(plan.returns, out.rewards[..., 0])  # first step only
     assert not torch.allclose(plan.returns, out.rewards.sum(-1))
+
+
+def test_overridden_score_hook_sees_rewards_stop_at_termination(hopper, actor):
+    class SumOfSquares(RandomShootingMPCPlanner):
+        def score_candidates(self, rewards, final):
+            return rewards.pow(2).sum(-1)
+
+    model = reward_of_first_action(DeltaDynamicsModel(12, 3, hidden_sizes=(4,)))
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias[12] = 2.0  # reward 2 at every step
+    ends_at_step_1 = LearnedDynamicsEnv(model, hopper, termination_fn=always)
+    plan = SumOfSquares(ends_at_step_1, num_candidates=4, horizon=H).plan(hopper.reset())
+    torch.testing.assert_close(plan.returns, torch.full((4,), 4.0))  # one step: 2 ** 2

@@ -211,8 +211,8 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         A candidate that reaches a terminal state scores the rewards up to and including
         that step, nothing after it and no terminal value
         (:func:`~torchrl_mbmf.modules.planners.terminated_return`). An overriding hook is
-        called with the rewards after each candidate's terminal step zeroed and its counted
-        steps as ``trusted_steps``.
+        called with the rewards after each candidate's terminal step zeroed (and, with an
+        adaptive horizon, the steps counted up to that terminal step as ``trusted_steps``).
 
         Args:
             rewards: imagined rewards ``[*B, m, h]``.
@@ -373,11 +373,13 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         if terminated is not None:
             if type(self).score_candidates is ShootingPlanner.score_candidates:
                 return self.score_candidates(rewards, final, trusted_steps, terminated)
-            # an overridden hook sees the counted steps (up to the first terminal one) as its
-            # trusted steps and the rewards after them zeroed
-            trusted_steps, _ = counted_steps(terminated, trusted_steps)
+            # an overridden hook sees the rewards after each candidate's terminal step zeroed
+            # (and, when it is given trusted steps, the counted steps as those)
+            counted, _ = counted_steps(terminated, trusted_steps)
             steps = torch.arange(rewards.shape[-1], device=rewards.device)
-            rewards = rewards.masked_fill(steps >= trusted_steps.unsqueeze(-1), 0.0)
+            rewards = rewards.masked_fill(steps >= counted.unsqueeze(-1), 0.0)
+            if trusted_steps is not None:
+                trusted_steps = counted
         if trusted_steps is None:  # the two-argument hook of planners that override it
             return self.score_candidates(rewards, final)
         return self.score_candidates(rewards, final, trusted_steps)
