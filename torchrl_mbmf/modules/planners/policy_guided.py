@@ -27,7 +27,8 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
     ``ExplorationType.DETERMINISTIC`` (otherwise all candidates would collapse onto the mode).
 
     The planner writes the executed action and, evaluated at the real state, the actor's
-    ``loc``/``scale`` and the action's log-probability (``action_log_prob``): batches collected
+    ``loc``/``scale`` and the action's log-probability (under the actor's ``log_prob_key``,
+    ``action_log_prob`` by default): batches collected
     with it feed :class:`~torchrl.objectives.ClipPPOLoss` (and a replay buffer for
     :class:`~torchrl.objectives.SACLoss`) unchanged. Note the off-policy bias this implies, as
     in the thesis: the executed action is the best of ``m`` policy samples, not a plain sample,
@@ -142,6 +143,7 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             and cls.rollout is ShootingPlanner.rollout
             and cls.candidate_source is ShootingPlanner.candidate_source
             and cls.transition is ShootingPlanner.transition
+            and cls.horizon_mask is ShootingPlanner.horizon_mask
             and type(self._model_step) is CachedModelStep
         )
 
