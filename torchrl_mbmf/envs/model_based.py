@@ -232,6 +232,11 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             raise TypeError(
                 f"world_model must be a DeltaDynamicsModel, got {type(world_model).__name__}"
             )
+        if not isinstance(env, EnvBase):
+            raise TypeError(
+                f"env must be the real TorchRL env (an EnvBase) whose specs and start states the "
+                f"learned env takes, got {type(env).__name__}"
+            )
         if member_assignment is not None and member_assignment not in MEMBER_ASSIGNMENTS:
             raise ValueError(
                 f"member_assignment must be one of {MEMBER_ASSIGNMENTS}, got {member_assignment!r}"

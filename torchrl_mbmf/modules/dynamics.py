@@ -109,11 +109,12 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
     ) -> None:
         super().__init__()
         k = check_number(ensemble_size, "ensemble_size", minimum=1, integer=True)
-        if state_dim < 1 or action_dim < 1:
-            raise ValueError(
-                f"state_dim and action_dim must be >= 1, got state_dim={state_dim}, "
-                f"action_dim={action_dim}"
-            )
+        check_number(state_dim, "state_dim", minimum=1, integer=True)
+        check_number(action_dim, "action_dim", minimum=1, integer=True)
+        for name, bound in (("action_low", action_low), ("action_high", action_high)):
+            number = isinstance(bound, int | float) and not isinstance(bound, bool)
+            if bound is not None and not (number and not math.isnan(bound)):
+                raise ValueError(f"{name} must be a number or None (no clip), got {bound!r}")
         low = -math.inf if action_low is None else float(action_low)
         high = math.inf if action_high is None else float(action_high)
         if not low < high:

@@ -397,12 +397,22 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         Returns:
             The :class:`Plan`, with the statistics the planner writes.
         """
+        state = tensordict.get(self.state_key, None)
+        if state is None:
+            raise KeyError(
+                f"{type(self).__name__} plans from {self.state_key!r}, which its input lacks "
+                f"(keys: {sorted(map(str, tensordict.keys(True, True)))})"
+            )
+        if not torch.isfinite(state).all():
+            raise ValueError(
+                f"{type(self).__name__} got a NaN or Inf {self.state_key!r}: no plan can start "
+                "from it"
+            )
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             if not self.fast_path:
                 first, rewards, final, terminated = self._rollout_generic(tensordict)
                 returns = self._score(rewards, final, None, terminated)
                 return Plan(first, returns, select_best(returns))
-            state = tensordict.get(self.state_key)
             out, returns = self._scored(state, None)
             if not self.refinement_rounds:
                 best = select_best(returns)
