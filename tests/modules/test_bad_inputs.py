@@ -19,7 +19,11 @@ from torchrl_mbmf.modules import (
     [
         (("3", 1), {}, "state_dim must be an integer >= 1, got '3'"),
         ((3, 2.5), {}, "action_dim must be an integer >= 1, got 2.5"),
-        ((3, 1), {"action_low": float("nan"), "action_high": 1.0}, "action_low must be a number or None"),
+        (
+            (3, 1),
+            {"action_low": float("nan"), "action_high": 1.0},
+            "action_low must be a number or None",
+        ),
         ((3, 1), {"action_high": "2"}, "action_high must be a number or None"),
     ],
 )
