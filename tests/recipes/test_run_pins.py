@@ -41,8 +41,8 @@ PINS: dict[str, tuple[str, list[tuple[int, str]]]] = {
         "575590065f08261f182728c3bfb31e618cdc2bb168b2d21db74cfee315255ad2",
         [(384, "-1655.6181640625"), (576, "-1182.970947265625"), (960, "-1538.3548583984375")],
     ),
-    # mpc, ppo_mpc, sac_mpc re-pinned when the world model took Pendulum's action range
-    # ([-2, 2]) from the env instead of clipping actions to [-1, 1] (issue 30)
+    # mpc, ppo_mpc and sac_mpc re-pinned when the world model stopped clipping Pendulum's
+    # [-2, 2] actions to [-1, 1] (it takes the env's action bounds)
     "mpc": (
         "8ceab634b78c17ff66444b5396921171a8726eeea6c79017861edf460d5340db",
         [(300, "-1637.8001708984375")],

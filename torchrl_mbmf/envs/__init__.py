@@ -14,6 +14,11 @@ from torchrl_mbmf.envs.keys import (
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.envs.physics_info import PhysicsInfo
 from torchrl_mbmf.envs.tasks import TASK_LAYOUTS, TaskLayout, task_layout
+from torchrl_mbmf.envs.terminations import (
+    TerminationFn,
+    termination_rule,
+    termination_rule_of_env,
+)
 from torchrl_mbmf.envs.transforms import (
     REWARDS,
     DefaultReward,
@@ -42,6 +47,7 @@ __all__ = [
     "ShinPenReward",
     "StateToObservation",
     "TaskLayout",
+    "TerminationFn",
     "action_bounds",
     "env_metadata",
     "make_env",
@@ -49,4 +55,6 @@ __all__ = [
     "make_half_cheetah_env",
     "make_reward",
     "task_layout",
+    "termination_rule",
+    "termination_rule_of_env",
 ]

@@ -25,6 +25,7 @@ import numpy as np
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
+from torchrl_mbmf.trainers.progress import BAR_FORMAT, RunPlan, TrainerETA
 from torchrl_mbmf.trainers.schedule import Actor
 
 __all__ = [
@@ -75,6 +76,9 @@ class Hooks:
 class ProgressBar:
     """A ``tqdm`` bar of real steps (``collected``); disabled with ``progress=false``.
 
+    Its ETA is the run's phase-aware estimate (:class:`~torchrl_mbmf.trainers.progress.TrainerETA`:
+    random data, planning with refits and model-free steps at their measured rates).
+
     Args:
         total: the run's real-step budget.
         desc: the bar's label.
@@ -89,16 +93,27 @@ class ProgressBar:
     def __init__(self, total: int, desc: str, enabled: bool) -> None:
         self.total, self.desc, self.enabled = total, desc, enabled
         self.bar: tqdm | None = None
+        self.eta: TrainerETA | None = None
 
     def open(self, initial: int) -> None:
         """Shows the bar from ``initial`` steps."""
         self.bar = tqdm(
-            total=self.total, initial=initial, desc=self.desc, unit="step", disable=not self.enabled
+            total=self.total,
+            initial=initial,
+            desc=self.desc,
+            unit="step",
+            disable=not self.enabled,
+            bar_format=BAR_FORMAT,
         )
+        self.opened = time.perf_counter()
 
     def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if self.bar is not None:
+            if self.enabled:
+                if self.eta is None:
+                    self.eta = TrainerETA(RunPlan.from_config(trainer.cfg), start=self.opened)
+                self.bar.set_postfix_str(self.eta(trainer, batch), refresh=False)
             self.bar.update(batch.numel())
 
     def close(self) -> None:

@@ -21,6 +21,7 @@ from torchrl.envs.utils import RandomPolicy
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
+from torchrl_mbmf.runs.claim import claim_run_folder
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
 from torchrl_mbmf.trainers.agents import make_agent
@@ -41,6 +42,7 @@ from torchrl_mbmf.trainers.config import (
 from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
+from torchrl_mbmf.trainers.signals import StopRequest
 
 __all__ = ["Trainer", "seed_everything"]
 
@@ -139,7 +141,11 @@ class Trainer:
         }
         self.frames_per_batch = int(cfg[family].frames_per_batch)
         self.total_steps = int(cfg.total_steps)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        # The folder is this run's (locked; a finished or foreign run refused) before anything
+        # is written to it; a refused setting above has written nothing.
+        self.lock = claim_run_folder(
+            self.run_dir, flatten_config(cfg), restart=bool(cfg.get("restart", False))
+        )
         self.logger = instantiate_group(cfg, "logger", run_dir=self.run_dir)
         self.hooks, named = make_hooks(cfg, self.schedule.model_based)
         self.bar, self.timing, self.checkpoints = (
@@ -243,14 +249,32 @@ class Trainer:
         return self.schedule.round_over(progress, self.acting)
 
     def train(self) -> dict[str, Any]:
-        """Runs until ``total_steps`` real steps; returns (and writes) a summary."""
+        """Runs until ``total_steps`` real steps; returns (and writes) a summary.
+
+        A SIGTERM or SIGINT stops the run after its next scheduled checkpoint (see
+        :mod:`~torchrl_mbmf.trainers.signals`); the return value then says so and no summary is
+        written.
+        """
+        try:
+            with StopRequest() as stop:
+                return self._train(stop)
+        finally:
+            self.lock.release()
+
+    def _train(self, stop: StopRequest) -> dict[str, Any]:
         self.bar.open(self.progress["real_steps"])
         self.timing.open(self.progress["real_steps"])
         start = time.perf_counter()
         if self.schedule.phase(self.progress) is Phase.RANDOM:
             self.collect_random()
         while self.progress["real_steps"] < self.total_steps:
+            saved_before = self.progress["next_checkpoint"]
             self.collect_round()
+            stop.keep_installed()
+            if stop.requested and self.progress["next_checkpoint"] != saved_before:
+                self.bar.close()
+                steps = self.progress["real_steps"]
+                return {"stopped_by": stop.requested, "real_steps": steps, "checkpoint": steps}
         self.bar.close()
         self.save_checkpoint()
         return self.write_summary(time.perf_counter() - start)
