@@ -104,10 +104,24 @@ def make_env(
     )
 
 
-def _flat_transforms(transform: Transform) -> list[Transform]:
-    """The transforms of ``transform``, nested :class:`~torchrl.envs.Compose` unpacked."""
+def flat_transforms(transform: Transform) -> list[Transform]:
+    """The transforms of ``transform``, nested :class:`~torchrl.envs.Compose` unpacked.
+
+    A :class:`~torchrl.envs.TransformedEnv` built with one transform holds it as it is, not in
+    a ``Compose``; this lists both the same way.
+
+    Args:
+        transform: a transform or a ``Compose`` of them (an env's ``.transform``).
+
+    Examples:
+        >>> from torchrl.envs import Compose, DoubleToFloat, StepCounter
+        >>> from torchrl_mbmf.envs.factory import flat_transforms
+        >>> nested = Compose(Compose(StepCounter()), DoubleToFloat())
+        >>> [type(t).__name__ for t in flat_transforms(nested)]
+        ['StepCounter', 'DoubleToFloat']
+    """
     if isinstance(transform, Compose):
-        return [t for inner in transform for t in _flat_transforms(inner)]
+        return [t for inner in transform for t in flat_transforms(inner)]
     return [transform]
 
 
@@ -140,7 +154,7 @@ def env_metadata(env: EnvBase) -> dict[str, Any]:
     reward: dict[str, Any] = {"name": NATIVE_REWARD}
     node: EnvBase = env
     while isinstance(node, TransformedEnv):
-        for t in _flat_transforms(node.transform):
+        for t in flat_transforms(node.transform):
             if isinstance(t, ForwardPenaltyReward):
                 reward = dict(t.parameters_dict())
         node = node.base_env
