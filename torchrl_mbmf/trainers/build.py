@@ -4,20 +4,23 @@ from __future__ import annotations
 
 import copy
 import random
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger, get_logger
 
+from torchrl_mbmf.checks import choice
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.envs.factory import make_env
 from torchrl_mbmf.runs.layout import LOGS
-from torchrl_mbmf.trainers.components import choice
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.hooks import (
     EpisodeLog,
@@ -105,8 +108,13 @@ def make_logger(run_dir: str | Path, *, backend: str) -> Logger | None:
 
 
 def make_collector(
-    env: EnvBase, policy: Any, frames: int, total: int, device: torch.device, kind: str = "lean"
-) -> Any:
+    env: EnvBase,
+    policy: TensorDictModuleBase | Callable[[TensorDictBase], TensorDictBase],
+    frames: int,
+    total: int,
+    device: torch.device,
+    kind: str = "lean",
+) -> Collector | LeanCollector:
     """The lean collector where the env supports it (``kind="lean"``), else the stock one.
 
     Args:

@@ -16,21 +16,26 @@ learnt from it) and ``round_end`` (its collector is closed).
 
 from __future__ import annotations
 
+import abc
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
-from torchrl_mbmf.trainers.schedule import Actor
+from torchrl_mbmf.trainers.schedule import Actor, Progress
+
+if TYPE_CHECKING:
+    from torchrl_mbmf.trainers.loop import Trainer
 
 __all__ = [
     "STAGES",
     "EpisodeLog",
     "Evaluation",
+    "Hook",
     "Hooks",
     "ModelData",
     "ModelRefit",
@@ -42,7 +47,33 @@ __all__ = [
 #: The stages a hook can run at, in loop order.
 STAGES: tuple[str, ...] = ("collected", "updated", "round_end")
 
-Hook = Callable[[Any, TensorDictBase | None], None]
+
+class Hook(abc.ABC):
+    """A step the loop runs once per collected batch at one stage, with the trainer.
+
+    Subclasses implement ``__call__(trainer, batch)``; they read and advance
+    ``trainer.progress`` and use the trainer's parts (``agent``, ``world``, ``schedule``).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import Hook
+        >>> class CountBatches(Hook):
+        ...     def __init__(self):
+        ...         self.count = 0
+        ...     def __call__(self, trainer, batch):
+        ...         self.count += 1
+        >>> hook = CountBatches()
+        >>> hook(None, None)
+        >>> hook.count
+        1
+    """
+
+    @abc.abstractmethod
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+
+
+#: A hook: a :class:`Hook` or any callable ``(trainer, batch) -> None``.
+HookFn = Hook | Callable[["Trainer", TensorDictBase | None], None]
 
 
 class Hooks:
@@ -58,21 +89,21 @@ class Hooks:
     """
 
     def __init__(self) -> None:
-        self.stages: dict[str, list[Hook]] = {stage: [] for stage in STAGES}
+        self.stages: dict[str, list[HookFn]] = {stage: [] for stage in STAGES}
 
-    def register(self, stage: str, hook: Hook) -> None:
+    def register(self, stage: str, hook: HookFn) -> None:
         """Appends ``hook`` (called as ``hook(trainer, batch)``) to ``stage``."""
         if stage not in self.stages:
             raise ValueError(f"stage={stage!r} is not a hook stage; allowed: {list(STAGES)}")
         self.stages[stage].append(hook)
 
-    def run(self, stage: str, trainer: Any, batch: TensorDictBase | None = None) -> None:
+    def run(self, stage: str, trainer: Trainer, batch: TensorDictBase | None = None) -> None:
         """Calls the hooks of ``stage`` in registration order."""
         for hook in self.stages[stage]:
             hook(trainer, batch)
 
 
-class ProgressBar:
+class ProgressBar(Hook):
     """A ``tqdm`` bar of real steps (``collected``); disabled with ``progress=false``.
 
     Args:
@@ -96,7 +127,7 @@ class ProgressBar:
             total=self.total, initial=initial, desc=self.desc, unit="step", disable=not self.enabled
         )
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if self.bar is not None:
             self.bar.update(batch.numel())
@@ -107,7 +138,7 @@ class ProgressBar:
             self.bar.close()
 
 
-class EpisodeLog:
+class EpisodeLog(Hook):
     """Logs each finished episode's return and the last-10 statistics (``collected``).
 
     Examples:
@@ -118,33 +149,32 @@ class EpisodeLog:
 
     WINDOW = 10
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         progress = trainer.progress
         done = batch.get(("next", "done"))[..., 0]
         if not done.any():
             return
         returns = batch.get(("next", "episode_reward"))[..., 0][done]
-        last = deque(progress["last_returns"], maxlen=self.WINDOW)
+        last = deque(progress.last_returns, maxlen=self.WINDOW)
         for r in returns.tolist():
-            progress["episodes"] += 1
+            progress.episodes += 1
             last.append(r)
             trainer.log({"train/episode_return": r})
-        progress["last_returns"] = list(last)
+        progress.last_returns = list(last)
         arr = np.asarray(last)
         trainer.log(
             {
                 "train/return_last10_mean": arr.mean(),
                 "train/return_last10_min": arr.min(),
                 "train/return_last10_max": arr.max(),
-                "train/episodes": progress["episodes"],
-                "train/real_steps_without_random": progress["real_steps"]
-                - progress["random_steps"],
+                "train/episodes": progress.episodes,
+                "train/real_steps_without_random": progress.real_steps - progress.random_steps,
             }
         )
 
 
-class ModelData:
+class ModelData(Hook):
     """Adds random-data and planner batches to the world model's dataset (``collected``).
 
     Also logs the planner's statistics of a planned batch.
@@ -155,7 +185,7 @@ class ModelData:
         True
     """
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if trainer.acting is Actor.AGENT:
             return
@@ -163,7 +193,7 @@ class ModelData:
         trainer.log(trainer.world.planner_scalars(batch))
 
 
-class ModelRefit:
+class ModelRefit(Hook):
     """Refits the world model when the schedule says so (``updated``).
 
     The refit's seed is ``seed + updates``; with an adaptive-horizon ensemble the refit
@@ -175,13 +205,13 @@ class ModelRefit:
         True
     """
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if trainer.schedule.refit_due(trainer.progress, trainer.acting is Actor.PLANNER):
             trainer.refit_model()
 
 
-class StepTiming:
+class StepTiming(Hook):
     """Logs the batch's learning time and the run's steps per second (``updated``).
 
     Examples:
@@ -197,19 +227,19 @@ class StepTiming:
         """Counts the pace from now and ``steps`` real steps."""
         self.start, self.start_steps = time.perf_counter(), steps
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         now = time.perf_counter()
         trainer.log(
             {
                 "time/update_s": now - trainer.batch_time,
-                "time/steps_per_s": (trainer.progress["real_steps"] - self.start_steps)
+                "time/steps_per_s": (trainer.progress.real_steps - self.start_steps)
                 / max(1e-9, now - self.start),
             }
         )
 
 
-class Evaluation:
+class Evaluation(Hook):
     """Evaluates the policy alone every ``every`` real steps (``updated``).
 
     Args:
@@ -225,16 +255,16 @@ class Evaluation:
     def __init__(self, every: int, episodes: int) -> None:
         self.every, self.episodes = every, episodes
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         progress = trainer.progress
-        if progress["real_steps"] >= progress["next_eval"]:
+        if progress.real_steps >= progress.next_eval:
             if self.episodes > 0:
                 trainer.log({"eval/return": trainer.evaluate()})
-            progress["next_eval"] += self.every
+            progress.next_eval += self.every
 
 
-class SaveCheckpoint:
+class SaveCheckpoint(Hook):
     """Writes a checkpoint when one is due, between two collectors (``round_end``).
 
     Args:
@@ -242,7 +272,8 @@ class SaveCheckpoint:
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import SaveCheckpoint
-        >>> progress = {"real_steps": 450, "next_checkpoint": 400}
+        >>> from torchrl_mbmf.trainers.schedule import Progress
+        >>> progress = Progress(real_steps=450, next_checkpoint=400)
         >>> SaveCheckpoint(every=400).due(progress)
         True
     """
@@ -251,14 +282,14 @@ class SaveCheckpoint:
         self.every = every
 
     @staticmethod
-    def due(progress: dict[str, Any]) -> bool:
+    def due(progress: Progress) -> bool:
         """Whether the run has passed its next checkpoint step."""
-        return progress["real_steps"] >= progress["next_checkpoint"]
+        return progress.real_steps >= progress.next_checkpoint
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         progress = trainer.progress
         if self.due(progress):
-            while progress["next_checkpoint"] <= progress["real_steps"]:
-                progress["next_checkpoint"] += self.every
+            while progress.next_checkpoint <= progress.real_steps:
+                progress.next_checkpoint += self.every
             trainer.save_checkpoint()

@@ -16,14 +16,16 @@ from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
+from torchrl.collectors import Collector
 from torchrl.envs.utils import RandomPolicy
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
-from torchrl_mbmf.trainers.agents import make_agent
+from torchrl_mbmf.trainers.agents import Agent, make_agent
 from torchrl_mbmf.trainers.build import (
     evaluate_policy,
     make_collector,
@@ -32,15 +34,11 @@ from torchrl_mbmf.trainers.build import (
     seed_everything,
 )
 from torchrl_mbmf.trainers.components import instantiate_group
-from torchrl_mbmf.trainers.config import (
-    MODEL_BASED,
-    PPO_METHODS,
-    flatten_config,
-    validate_train_config,
-)
+from torchrl_mbmf.trainers.config import TrainSettings, flatten_config
 from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.guards import check_finite
-from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
+from torchrl_mbmf.trainers.planning import WorldModelPart
+from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 
 __all__ = ["Trainer", "seed_everything"]
 
@@ -93,24 +91,23 @@ class Trainer:
     #: The measured parts of :meth:`time_breakdown` (the rest is ``other_s``).
     TIME_KEYS: tuple[str, ...] = ("env_s", "act_s", "update_s", "refit_s")
 
-    def __init__(self, cfg: Any, run_dir: Path) -> None:
-        validate_train_config(cfg)
-        self.cfg = cfg
+    def __init__(self, cfg: DictConfig, run_dir: Path) -> None:
+        # the config is read here only: the loop reads the parsed settings and the parts
+        self.settings = settings = TrainSettings.from_config(cfg)
         self.run_dir = Path(run_dir)
-        seed_everything(int(cfg.seed))
+        seed_everything(settings.seed)
         self.times = dict.fromkeys(self.TIME_KEYS, 0.0)
-        if cfg.get("threads") is not None:
-            torch.set_num_threads(int(cfg.threads))
+        if settings.threads is not None:
+            torch.set_num_threads(settings.threads)
         # networks, world model, planner and updates; the MuJoCo envs stay on the CPU
-        self.device = resolve_device(cfg.get("device", "cpu"))
-        self.env = make_train_env(cfg, int(cfg.seed))
-        self.eval_env = make_train_env(cfg, int(cfg.seed) + 1000, num_envs=1)
+        self.device = resolve_device(settings.device)
+        self.env = make_train_env(cfg, settings.seed)
+        self.eval_env = make_train_env(cfg, settings.seed + 1000, num_envs=1)
         # The config groups' components (components.instantiate_group): their constructors
         # check every argument, so a bad value stops the run here, before any work.
-        family = "ppo" if cfg.method in PPO_METHODS else "sac"
-        self.agent = make_agent(family, self.env, cfg, self.device)
-        self.world = None
-        if cfg.method in MODEL_BASED:
+        self.agent: Agent = make_agent(settings.family, self.env, cfg, self.device)
+        self.world: WorldModelPart | None = None
+        if settings.model_based:
             self.world = instantiate_group(
                 cfg,
                 "world_model",
@@ -118,27 +115,19 @@ class Trainer:
                 agent=self.agent,
                 device=self.device,
                 planner=functools.partial(instantiate_group, cfg, "planner"),
-                seed=int(cfg.seed),
-                guided=cfg.method != "mpc",
+                seed=settings.seed,
+                guided=settings.method != "mpc",
             )
         self.schedule = PhaseSchedule.from_config(cfg)
-        self.progress: dict[str, Any] = {
-            "real_steps": 0,
-            "random_steps": 0,
-            "updates": 0,
-            "phase": self.schedule.first_phase().value,
-            "episodes": 0,
-            "last_returns": [],
-            "next_eval": 0,
-            "next_checkpoint": int(cfg.checkpoint.every_steps),
-            "next_refit": 0,
-            "switch_step": None,
-            "fingerprint": fingerprint(cfg),
+        self.progress = Progress(
+            phase=self.schedule.first_phase().value,
+            next_checkpoint=settings.checkpoint_every,
+            fingerprint=fingerprint(cfg),
             # the whole resolved config: a resume refuses any change that affects training
-            "config": flatten_config(cfg),
-        }
-        self.frames_per_batch = int(cfg[family].frames_per_batch)
-        self.total_steps = int(cfg.total_steps)
+            config=flatten_config(cfg),
+        )
+        self.frames_per_batch = settings.frames_per_batch
+        self.total_steps = settings.total_steps
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.logger = instantiate_group(cfg, "logger", run_dir=self.run_dir)
         self.hooks, named = make_hooks(cfg, self.schedule.model_based)
@@ -164,13 +153,13 @@ class Trainer:
             self.progress,
             tensors,
             self.logger,
-            keep_last=int(self.cfg.checkpoint.keep_last),
+            keep_last=self.settings.keep_last,
             dataset=None if self.world is None else self.world.dataset,
             dataset_needed=self.schedule.dataset_needed,
             replay=None
             if self.agent.replay is None
             else (self.agent.replay, self.agent.loss.in_keys),
-            backend=self.cfg.logger.backend,
+            backend=self.settings.logger_backend,
         )
 
     # ----------------------------------------------------------------- loop
@@ -178,9 +167,9 @@ class Trainer:
     def count(self, batch: TensorDictBase, random: bool = False) -> None:
         """Counts a collected batch's real steps and runs the ``collected`` hooks."""
         self.batch_time = time.perf_counter()
-        self.progress["real_steps"] += batch.numel()
+        self.progress.real_steps += batch.numel()
         if random:
-            self.progress["random_steps"] += batch.numel()
+            self.progress.random_steps += batch.numel()
         self.hooks.run("collected", self, batch)
 
     def collect_random(self) -> None:
@@ -200,14 +189,14 @@ class Trainer:
     def learn(self, batch: TensorDictBase) -> None:
         """The agent's update on ``batch`` (timed), then the ``updated`` hooks."""
         t_update = time.perf_counter()
-        stats = self.agent.update(batch, self.progress["real_steps"])
+        stats = self.agent.update(batch, self.progress.real_steps)
         if stats is not None:
-            self.progress["updates"] += 1
+            self.progress.updates += 1
             self.log(stats)
             log_std = self.agent.log_std(batch)
             scalars = {} if log_std is None else {"train/policy_log_std": log_std}
             if self.agent.logs_update_count:
-                scalars["train/updates"] = self.progress["updates"]
+                scalars["train/updates"] = self.progress.updates
             self.log(scalars)
         self.times["update_s"] += time.perf_counter() - t_update
         self.hooks.run("updated", self, batch)
@@ -220,7 +209,7 @@ class Trainer:
         self.acting = self.schedule.actor(self.progress)
         # Every collector starts from freshly seeded envs, so a resumed run continues
         # exactly like an uninterrupted one (checkpoints happen between collectors).
-        self.env.set_seed(int(self.cfg.seed) + self.progress["real_steps"])
+        self.env.set_seed(self.settings.seed + self.progress.real_steps)
         collector = self.collector(self.acting, self.frames_per_batch, -1)
         lean = isinstance(collector, LeanCollector)
         t_wait = time.perf_counter()
@@ -238,18 +227,18 @@ class Trainer:
     def round_over(self) -> bool:
         """Whether the current collector stops: budget, checkpoint or schedule."""
         progress = self.progress
-        if progress["real_steps"] >= self.total_steps or self.checkpoints.due(progress):
+        if progress.real_steps >= self.total_steps or self.checkpoints.due(progress):
             return True
         return self.schedule.round_over(progress, self.acting)
 
     def train(self) -> dict[str, Any]:
         """Runs until ``total_steps`` real steps; returns (and writes) a summary."""
-        self.bar.open(self.progress["real_steps"])
-        self.timing.open(self.progress["real_steps"])
+        self.bar.open(self.progress.real_steps)
+        self.timing.open(self.progress.real_steps)
         start = time.perf_counter()
         if self.schedule.phase(self.progress) is Phase.RANDOM:
             self.collect_random()
-        while self.progress["real_steps"] < self.total_steps:
+        while self.progress.real_steps < self.total_steps:
             self.collect_round()
         self.bar.close()
         self.save_checkpoint()
@@ -258,21 +247,21 @@ class Trainer:
     # ------------------------------------------------------------- services
     def refit_model(self) -> None:
         """Refits the world model on every real transition so far (and logs the fit)."""
-        seed = int(self.cfg.seed) + self.progress["updates"]
+        seed = self.settings.seed + self.progress.updates
         scalars = self.world.refit(seed, self.progress, self.run_dir)
         self.times["refit_s"] += scalars["time/model_fit_s"]
         self.log(scalars)
 
-    def collector(self, acting: Actor, frames: int, total: int) -> Any:
+    def collector(self, acting: Actor, frames: int, total: int) -> Collector | LeanCollector:
         """A collector of ``frames``-frame batches run by the policy ``acting`` names."""
         if acting is Actor.RANDOM:
             policy = RandomPolicy(self.env.full_action_spec)
         else:
             policy = self.world.planner if acting is Actor.PLANNER else self.agent.actor
-        kind = self.cfg.get("collector", "lean")
+        kind = self.settings.collector
         return make_collector(self.env, policy, frames, total, self.device, kind)
 
-    def close_collector(self, collector: Any) -> None:
+    def close_collector(self, collector: Collector | LeanCollector) -> None:
         """Adds a lean collector's env and policy time, then shuts the collector down."""
         times = getattr(collector, "times", None)
         if times is not None:
@@ -286,7 +275,7 @@ class Trainer:
         Raises:
             TrainingDivergedError: if a value is NaN or infinite (nothing of the call is logged).
         """
-        step = self.progress["real_steps"] if step is None else step
+        step = self.progress.real_steps if step is None else step
         values = {name: float(value) for name, value in metrics.items()}
         check_finite(values, step)
         if self.logger is None:
@@ -296,10 +285,10 @@ class Trainer:
 
     def evaluate(self) -> float:
         """Mean return of the policy alone, deterministic, over ``eval_episodes`` episodes."""
-        steps = self.progress["real_steps"]
-        self.eval_env.set_seed(int(self.cfg.seed) + 1000 + steps)
-        kind = self.cfg.get("collector", "lean")
-        episodes = int(self.cfg.eval_episodes)
+        steps = self.progress.real_steps
+        self.eval_env.set_seed(self.settings.seed + 1000 + steps)
+        kind = self.settings.collector
+        episodes = self.settings.eval_episodes
         return evaluate_policy(self.eval_env, self.agent.actor, episodes, self.device, kind, steps)
 
     def save_checkpoint(self) -> None:
@@ -309,17 +298,17 @@ class Trainer:
     # -------------------------------------------------------------- summary
     def write_summary(self, seconds: float) -> dict[str, Any]:
         """The run's summary (also written to ``summary.json``)."""
-        cfg, progress = self.cfg, self.progress
-        last = progress["last_returns"]
+        settings, progress = self.settings, self.progress
+        last = progress.last_returns
         summary = {
-            "method": cfg.method,
-            "env": cfg.env.id,
-            "reward": cfg.reward.name,
-            "seed": int(cfg.seed),
+            "method": settings.method,
+            "env": settings.env_id,
+            "reward": settings.reward,
+            "seed": settings.seed,
             **{k: progress[k] for k in ("real_steps", "random_steps", "updates", "episodes")},
-            "switch_step": progress["switch_step"],
+            "switch_step": progress.switch_step,
             "last10_mean_return": float(np.mean(last)) if last else None,
-            "final_eval_return": self.evaluate() if int(cfg.eval_episodes) > 0 else None,
+            "final_eval_return": self.evaluate() if settings.eval_episodes > 0 else None,
             "params_sha256": self.parameters_digest(),
             "seconds": seconds,
             "resumed": self.resumed,
