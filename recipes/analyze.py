@@ -17,6 +17,7 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_mbmf.analysis.experiments import analyze_experiments
+from torchrl_mbmf.checks import check_number, check_output_path
 
 log = logging.getLogger("analyze")
 
@@ -24,14 +25,17 @@ log = logging.getLogger("analyze")
 @hydra.main(config_path="../configs", config_name="analyze", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     logging.getLogger("torchrl").setLevel(logging.WARNING)
+    # Settings checked before any work.
+    out_dir = check_output_path(cfg.out_dir, "out_dir", folder=True)
+    gait_steps = check_number(cfg.gait_steps, "gait_steps", minimum=1, integer=True)
     world_models = [p for p in (cfg.world_models or []) if os.path.isdir(p)]
     analysis = analyze_experiments(
         list(cfg.runs),
-        cfg.out_dir,
+        out_dir,
         world_model_roots=world_models,
         gait=bool(cfg.gait),
         render=bool(cfg.render),
-        gait_steps=int(cfg.gait_steps),
+        gait_steps=gait_steps,
         collect=bool(cfg.collect),
     )
     log.info("%d runs analysed into %s", len(analysis["runs"]), cfg.out_dir)

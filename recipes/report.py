@@ -15,6 +15,7 @@ from omegaconf import DictConfig
 
 import torchrl_mbmf
 from torchrl_mbmf.analysis.report import write_report
+from torchrl_mbmf.checks import check_input_file, check_output_path
 
 log = logging.getLogger("report")
 
@@ -35,21 +36,24 @@ def _commit() -> str:
 
 @hydra.main(config_path="../configs", config_name="report", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    # Every input and the output are checked before any work.
     analyses = {Path(p).name: p for p in cfg.analyses}
     missing = [p for p in cfg.analyses if not (Path(p) / "analysis.json").exists()]
     if missing:
         raise FileNotFoundError(
             f"no analysis.json for {missing}; run recipes/analyze.py for them first"
         )
+    notes = None if cfg.notes is None else check_input_file(cfg.notes, "notes")
+    out = check_output_path(cfg.out, "out", folder=False)
     write_report(
         analyses,
-        cfg.out,
-        notes=cfg.notes,
+        out,
+        notes=notes,
         commands=list(cfg.commands),
         version=torchrl_mbmf.__version__,
         commit=_commit(),
     )
-    log.info("wrote %s", cfg.out)
+    log.info("wrote %s", out)
 
 
 if __name__ == "__main__":

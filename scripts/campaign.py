@@ -50,6 +50,7 @@ SMALL_FILES = (
     "machine.json",
     "summary.json",
     "policy.pt",
+    "policy.json",
     "resume_log.json",
     "logs",
     "train.log",

@@ -1,14 +1,16 @@
 """The one validation system: :class:`Setting` (a value's type and range) and its helpers.
 
-The modules, the losses, the fitters and the config all check values here; an error names
-the key, what was expected and the value.
+The modules, the losses, the fitters, the config and the recipes check values here (numbers,
+input files, output paths); an error names the key, what was expected and the value.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from omegaconf import ListConfig
@@ -18,9 +20,11 @@ __all__ = [
     "ConfigError",
     "Setting",
     "check_arguments",
+    "check_input_file",
     "check_multi_step",
     "check_multi_step_weight",
     "check_number",
+    "check_output_path",
     "choice",
     "settings",
 ]
@@ -279,4 +283,76 @@ def check_multi_step_weight(weight: float, *, key: str = "multi_step_weight") ->
     return check_number(weight, key, minimum=0)
 
 
-__all__ = ["check_multi_step", "check_multi_step_weight", "check_number"]
+def check_input_file(path: str | os.PathLike, key: str) -> Path:
+    """Checks that a setting names an existing, readable file.
+
+    Args:
+        path: the value.
+        key: its name in the error message.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        FileNotFoundError: naming ``key`` and the path when it is missing or not a file.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import check_input_file
+        >>> try:
+        ...     check_input_file("no/such/notes.md", "notes")
+        ... except FileNotFoundError as err:
+        ...     print(err)
+        notes='no/such/notes.md' is not a file (expected an existing file; null to leave it out)
+    """
+    file = Path(path)
+    if not file.is_file() or not os.access(file, os.R_OK):
+        what = "is not readable" if file.is_file() else "is not a file"
+        raise FileNotFoundError(
+            f"{key}={str(path)!r} {what} (expected an existing file; null to leave it out)"
+        )
+    return file
+
+
+def check_output_path(path: str | os.PathLike, key: str, *, folder: bool) -> Path:
+    """Checks, before any work, that an output file or folder can be written.
+
+    The path's nearest existing ancestor must be a writable folder; a folder output must not be
+    an existing file, and a file output must not be an existing folder.
+
+    Args:
+        path: the value.
+        key: its name in the error message.
+
+    Keyword Args:
+        folder: whether the output is a folder (else a file).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path` (nothing is created).
+
+    Raises:
+        ValueError: naming ``key`` and the path when it cannot be written there.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchrl_mbmf.checks import check_output_path
+        >>> with tempfile.NamedTemporaryFile() as f:
+        ...     try:
+        ...         check_output_path(f.name, "out_dir", folder=True)
+        ...     except ValueError as err:
+        ...         print(str(err).split(": ")[1])
+        an existing file, expected a folder
+    """
+    out = Path(path)
+    if folder and out.is_file():
+        raise ValueError(f"{key}={str(path)!r}: an existing file, expected a folder")
+    if not folder and out.is_dir():
+        raise ValueError(f"{key}={str(path)!r}: an existing folder, expected a file")
+    ancestor = out if out.is_dir() else out.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ValueError(
+            f"{key}={str(path)!r} cannot be written: {str(ancestor)!r} is not a writable folder"
+        )
+    return out

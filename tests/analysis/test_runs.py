@@ -623,3 +623,47 @@ def test_a_resampled_curve_exists_only_where_all_its_seeds_have_a_value():
     reference = np.array([[0.0, 6.0, 6.0]] * 4)
     ci = ratio_interval(reference, curves, grid, n_resamples=4000)
     assert (ci["low"], ci["high"]) == (1.0, 1.5)
+
+
+def _recipe_fails(tmp_path, name, *overrides):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / f"{name}.py"), *overrides],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    assert proc.returncode != 0
+    return proc.stderr
+
+
+def test_report_refuses_missing_notes_and_unwritable_out_before_any_work(tmp_path):
+    analysis = tmp_path / "short"
+    analysis.mkdir()
+    (analysis / "analysis.json").write_text("{}")
+    err = _recipe_fails(tmp_path, "report", f"analyses=[{analysis}]", "notes=/nonexistent.md")
+    assert "notes='/nonexistent.md' is not a file" in err
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file where a folder should be")
+    out = blocker / "REPORT.md"
+    err = _recipe_fails(tmp_path, "report", f"analyses=[{analysis}]", "notes=null", f"out={out}")
+    assert f"out={str(out)!r} cannot be written" in err
+    (analysis / "analysis.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"analysis\.json' is not valid JSON"):
+        write_report({"short": analysis}, tmp_path / "REPORT.md")
+    assert not (tmp_path / "REPORT.md").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [("out_dir=FILE", "an existing file, expected a folder"), ("gait_steps=-5", "gait_steps")],
+)
+def test_analyze_refuses_bad_settings_before_any_work(tmp_path, override, message):
+    runs = tmp_path / "runs"
+    make_run(runs, "ppo", 0, [1.0, 2.0, 3.0])
+    file = tmp_path / "a_file"
+    file.write_text("")
+    override = override.replace("FILE", str(file))
+    err = _recipe_fails(tmp_path, "analyze", f"runs=[{runs}]", "world_models=[]", override)
+    assert message in err

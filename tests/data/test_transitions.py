@@ -268,3 +268,43 @@ def test_extend_refuses_non_finite_transitions(field, value):
     assert len(data) == 0
     data.extend(_batch(2, 3))
     assert len(data) == 6
+
+
+def _resized(batch, key, size, dtype=torch.float32):
+    value = batch.get(key)
+    batch.set(key, torch.zeros(*value.shape[:-1], size, dtype=dtype))
+    return batch
+
+
+@pytest.mark.parametrize(
+    ("make_bad", "message"),
+    [
+        (lambda: _resized(_batch(2, 3), "state", 4), r"'state' has trailing shape \[4\]"),
+        (lambda: _resized(_batch(2, 3), "action", 2), r"'action' has trailing shape \[2\]"),
+        (
+            lambda: _resized(_batch(2, 3), ("next", "state"), 3, torch.float64),
+            "wrap a float64 env in torchrl's DoubleToFloat",
+        ),
+        (lambda: _batch(2, 0), r"empty batch of shape \(2, 0\)"),
+    ],
+)
+def test_extend_refuses_another_layout_before_storing(make_bad, message):
+    data = TransitionDataset(META)
+    data.extend(_batch(2, 3))
+    with pytest.raises(ValueError, match=message):
+        data.extend(make_bad())
+    assert len(data) == 6
+
+
+def test_loaded_dataset_keeps_its_layout(tmp_path):
+    data = TransitionDataset(META)
+    data.extend(_batch(2, 3))
+    loaded = TransitionDataset.load(data.save(tmp_path / "d"))
+    with pytest.raises(ValueError, match=r"the dataset holds \[3\]"):
+        loaded.extend(_resized(_batch(1, 2), "state", 5))
+
+
+@pytest.mark.parametrize("capacity", [2.5, True, 0, float("nan")])
+def test_capacity_must_be_a_positive_integer(capacity):
+    with pytest.raises(ValueError, match="capacity must be an integer >= 1"):
+        TransitionDataset(META, capacity=capacity)

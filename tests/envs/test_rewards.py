@@ -197,3 +197,31 @@ def test_physics_info_reference_height_matches_model():
 def test_reward_constructors_check_their_arguments(cls, kwargs, message):
     with pytest.raises(ValueError, match=message):
         cls(**kwargs)
+
+
+def _physics(batch, **fields):
+    next_td = TensorDict({"forward_velocity": torch.ones(*batch, 1), **fields}, batch_size=batch)
+    return TensorDict(action=torch.zeros(*batch, 6), next=next_td, batch_size=batch)
+
+
+@pytest.mark.parametrize(
+    ("reward", "fields", "message"),
+    [
+        (HeadPenReward(), {"head_height": torch.tensor([[float("nan")], [0.0]])}, "NaN or Inf"),
+        (HeadPenReward(), {"head_height": torch.zeros(2, 2)}, r"shape \[2, 1\] or \[2\]"),
+        (ShinPenReward(), {"joint_angles": torch.full((2, 6), float("inf"))}, "NaN or Inf"),
+        (DefaultReward(), {"forward_velocity": torch.ones(2, 3)}, "got shape \\[2, 3\\]"),
+    ],
+)
+def test_rewards_refuse_non_finite_or_misshaped_physics(reward, fields, message):
+    td = _physics((2,), **fields)
+    with pytest.raises(ValueError, match=message):
+        reward(td)
+
+
+def test_rewards_accept_physics_without_the_trailing_one():
+    td = _physics((3,), head_height=torch.tensor([-0.5, 0.0, 0.1]))
+    td["next", "forward_velocity"] = torch.ones(3)
+    assert HeadPenReward()(td)["next", "reward"].squeeze(-1).tolist() == pytest.approx(
+        [0.9, 1.0, 1.0]
+    )

@@ -37,6 +37,7 @@ from torchrl_mbmf.runs.layout import (
     GIT_COMMIT,
     MACHINE,
     POLICY,
+    POLICY_RECORD,
     SUMMARY,
     TRAIN_LOG,
     RunFolder,
@@ -295,7 +296,7 @@ def collect_runs(runs: Iterable[Run], dest: str | Path, *, max_file_bytes: int =
     for run in runs:
         names = (CONFIG, SUMMARY, GIT_COMMIT, MACHINE)
         files = [run.path / n for n in names]
-        files += [run.path / POLICY, run.path / TRAIN_LOG]
+        files += [run.path / POLICY, run.path / POLICY_RECORD, run.path / TRAIN_LOG]
         files += sorted(RunFolder(run.path).scalars.rglob("*.csv"))
         for f in files:
             if f.exists() and f.stat().st_size <= max_file_bytes:

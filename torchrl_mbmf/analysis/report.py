@@ -8,6 +8,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from torchrl_mbmf.checks import check_input_file, check_output_path
+
 # The thesis' numbers the report sets ours against (sections 7.1.1-7.1.4, 8).
 THESIS = {
     "exp1": "h = 10 gave the highest returns, a maximum average return of 1908 within 4e5 steps; "
@@ -413,6 +415,22 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
     return out
 
 
+def _read_analysis(folder: Path) -> dict:
+    """The ``analysis.json`` of an analysed folder; names the file when it is missing or bad."""
+    file = folder / "analysis.json"
+    if not file.is_file():
+        raise FileNotFoundError(
+            f"no analysis.json in {str(folder)!r}; run recipes/analyze.py first"
+        )
+    try:
+        analysis = json.loads(file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{str(file)!r} is not valid JSON ({err})") from err
+    if not isinstance(analysis, dict):
+        raise ValueError(f"{str(file)!r} holds a {type(analysis).__name__}, expected an object")
+    return analysis
+
+
 def write_report(
     analyses: Mapping[str, str | Path],
     path: str | Path,
@@ -438,11 +456,19 @@ def write_report(
     Returns:
         The report text.
 
+    Raises:
+        FileNotFoundError: when ``notes`` is given but is not a readable file, or an analysis
+            folder lacks its ``analysis.json``.
+        ValueError: when ``path`` cannot be written, or an ``analysis.json`` is not valid
+            JSON (the file is named); all checked before anything is written.
+
     Examples:
         >>> from torchrl_mbmf.analysis.report import write_report
         >>> text = write_report({"short": "results/short"}, "results/REPORT.md")  # doctest: +SKIP
     """
-    path = Path(path)
+    path = check_output_path(path, "path", folder=False)
+    notes_text = None if notes is None else check_input_file(notes, "notes").read_text()
+    loaded = {name: _read_analysis(Path(folder)) for name, folder in analyses.items()}
     lines = [
         "# torchrl_mbmf: experiments of the thesis, reproduced",
         "",
@@ -460,15 +486,13 @@ def write_report(
         "two identical methods show one time in 20 (3 against 3 seeds, one direction).",
         "",
     ]
-    if notes is not None and Path(notes).exists():
-        lines += [Path(notes).read_text().strip(), ""]
+    if notes_text is not None:
+        lines += [notes_text.strip(), ""]
     if commands:
         lines += ["## Commands", "", "```bash", *commands, "```", ""]
     for name, folder in analyses.items():
-        folder = Path(folder)
-        analysis = json.loads((folder / "analysis.json").read_text())
-        rel = os.path.relpath(folder, path.parent)
-        lines += _section(name, analysis, rel)
+        rel = os.path.relpath(Path(folder), path.parent)
+        lines += _section(name, loaded[name], rel)
     text = "\n".join(lines).rstrip() + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)

@@ -20,6 +20,7 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 import torchrl_mbmf
+from torchrl_mbmf.checks import check_number
 from torchrl_mbmf.data.memmap import UnsafeFolderError, load_tensor_folder
 from torchrl_mbmf.envs.factory import env_metadata
 from torchrl_mbmf.envs.keys import STATE_KEY
@@ -198,10 +199,8 @@ class TransitionDataset:
         for key in ("env_id", "reward"):
             if key not in metadata:
                 raise ValueError(f"metadata needs an {key!r} entry, got {sorted(metadata)}")
-        if capacity < 1:
-            raise ValueError(f"capacity must be >= 1, got {capacity}")
         self.metadata = dict(metadata)
-        self.capacity = int(capacity)
+        self.capacity = check_number(capacity, "capacity", minimum=1, integer=True)
         self.state_key = state_key
         self.action_key = action_key
         self.reward_key = reward_key
@@ -212,6 +211,8 @@ class TransitionDataset:
         )
         self._next_traj = 0
         self._open_traj: torch.Tensor | None = None  # id of each env's running episode
+        # Trailing shape and dtype of each stored field, fixed by the first ``extend``.
+        self._layout: dict[NestedKey, tuple[tuple[int, ...], torch.dtype]] | None = None
 
     def __len__(self) -> int:
         return len(self.buffer)
@@ -237,13 +238,19 @@ class TransitionDataset:
                 the next belong to the same episode unless it was done.
 
         Raises:
-            ValueError: on a batch of another shape, missing keys, a NaN or Inf in a stored
+            ValueError: on a batch of another shape, an empty batch, missing keys, a stored
+                field of another size or dtype than the dataset holds (floating fields must be
+                ``float32``: wrap a float64 env in ``DoubleToFloat``), a NaN or Inf in a stored
                 field (state, action, next state, reward; nothing is stored), or when full.
         """
+        if batch.batch_dims not in (1, 2):
+            raise ValueError(f"extend expects a [T] or [N, T] batch, got {tuple(batch.batch_size)}")
+        if batch.batch_size.numel() == 0:
+            raise ValueError(
+                f"extend got an empty batch of shape {tuple(batch.batch_size)}; nothing to store"
+            )
         if batch.batch_dims == 1:
             batch = batch.unsqueeze(0)
-        if batch.batch_dims != 2:
-            raise ValueError(f"extend expects a [T] or [N, T] batch, got {tuple(batch.batch_size)}")
         n_envs, steps = batch.batch_size
         if len(self) + n_envs * steps > self.capacity:
             raise ValueError(
@@ -253,6 +260,7 @@ class TransitionDataset:
         missing = [k for k in self.keys[:-2] if k not in batch.keys(True)]
         if missing:
             raise ValueError(f"transitions lack keys {missing}; present: {batch.keys(True)}")
+        self._check_layout(batch)
         # One vectorised check per field, before anything is stored.
         for name in self.keys[:4]:
             if not torch.isfinite(batch.get(name)).all():
@@ -285,6 +293,34 @@ class TransitionDataset:
             batch_size=[n_envs, steps],
         ).reshape(-1)
         self.buffer.extend(flat.to(torch.device("cpu")))
+
+    def _check_layout(self, batch: TensorDictBase) -> None:
+        """Refuses fields whose size or dtype differ from the stored ones (or are not float32)."""
+        layout = {}
+        for name in self.keys[:4]:
+            value = batch.get(name)
+            layout[name] = (tuple(value.shape[2:]), value.dtype)
+            if value.dtype.is_floating_point and value.dtype != torch.float32:
+                raise ValueError(
+                    f"transitions' {name!r} is {value.dtype}, expected torch.float32 (the world "
+                    "model's dtype): wrap a float64 env in torchrl's DoubleToFloat transform"
+                )
+        if self._layout is None and len(self) > 0:
+            stored = self.tensors()
+            self._layout = {
+                k: (tuple(stored.get(k).shape[1:]), stored.get(k).dtype) for k in layout
+            }
+        if self._layout is None:
+            self._layout = layout
+            return
+        for name, (shape, dtype) in layout.items():
+            want_shape, want_dtype = self._layout[name]
+            if (shape, dtype) != (want_shape, want_dtype):
+                raise ValueError(
+                    f"transitions' {name!r} has trailing shape {list(shape)} and dtype {dtype}, "
+                    f"but the dataset holds {list(want_shape)} and {want_dtype}; nothing was "
+                    "stored (a dataset holds one env's transitions)"
+                )
 
     def tensors(self) -> TensorDictBase:
         """All stored transitions as one ``[N]`` TensorDict (a view of the storage)."""

@@ -7,7 +7,12 @@ resolver ``mbmf_variant``) and its trained policy (written beside every checkpoi
 
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
 import os
+import pickle
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -19,16 +24,37 @@ from torchrl.envs import EnvBase
 from torchrl_mbmf.envs.factory import make_env
 from torchrl_mbmf.methods import PPO_METHODS
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
-from torchrl_mbmf.runs.layout import CONFIG, POLICY
+from torchrl_mbmf.runs.layout import CONFIG, POLICY, POLICY_RECORD
 
-__all__ = ["POLICY_FILE", "load_policy", "save_policy", "variant_tag"]
+__all__ = [
+    "POLICY_FILE",
+    "CorruptPolicyError",
+    "load_policy",
+    "read_policy_state",
+    "save_policy",
+    "variant_tag",
+]
 
 #: File name of the exported policy inside a run folder.
 POLICY_FILE = POLICY
+_RECORD_FORMAT = "torchrl_mbmf.policy_integrity/1"
+log = logging.getLogger(__name__)
+
+
+class CorruptPolicyError(RuntimeError):
+    """An exported policy does not match its integrity record, or cannot be read safely."""
+
+
+def _sha256(path: Path) -> str:
+    with path.open("rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def save_policy(actor: torch.nn.Module, run_dir: str | Path, step: int) -> Path:
     """Atomically writes the actor's weights and the real-step count to ``run_dir/policy.pt``.
+
+    Its integrity record, ``policy.json`` (size and SHA-256 of ``policy.pt``, real steps), is
+    written after it; :func:`load_policy` verifies it.
 
     Args:
         actor: the policy module.
@@ -46,11 +72,91 @@ def save_policy(actor: torch.nn.Module, run_dir: str | Path, step: int) -> Path:
         'policy.pt'
     """
     path = Path(run_dir) / POLICY_FILE
+    record = Path(run_dir) / POLICY_RECORD
     tmp = path.with_suffix(".pt.tmp")
     state = {name: t.detach().cpu() for name, t in actor.state_dict().items()}
     torch.save({"state_dict": state, "real_steps": int(step)}, tmp)
+    entry = {
+        "format": _RECORD_FORMAT,
+        "file": POLICY_FILE,
+        "size": tmp.stat().st_size,
+        "sha256": _sha256(tmp),
+        "real_steps": int(step),
+    }
+    # The old record goes first: a crash between the two replaces leaves a policy without a
+    # record (loaded with a warning), never a record that names other bytes.
+    record.unlink(missing_ok=True)
     os.replace(tmp, path)
+    record_tmp = record.with_suffix(".json.tmp")
+    record_tmp.write_text(json.dumps(entry, indent=2) + "\n")
+    os.replace(record_tmp, record)
     return path
+
+
+def read_policy_state(run_dir: str | Path) -> tuple[dict[str, torch.Tensor], int]:
+    """Reads and verifies ``policy.pt``: its integrity record, a pickle-free load, finite weights.
+
+    Args:
+        run_dir: the run folder.
+
+    Returns:
+        ``(state_dict, real_steps)``.
+
+    Raises:
+        FileNotFoundError: no ``policy.pt``.
+        CorruptPolicyError: the file's size or SHA-256 differ from ``policy.json``, the file is
+            truncated, a plain pickle or of another layout, or a weight is NaN or Inf. A policy
+            exported before integrity records existed (no ``policy.json``) loads with a warning.
+
+    Examples:
+        >>> import tempfile, torch
+        >>> from torchrl_mbmf.runs.export import read_policy_state, save_policy
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     _ = save_policy(torch.nn.Linear(2, 2), d, step=10)
+        ...     state, steps = read_policy_state(d)
+        >>> sorted(state), steps
+        (['bias', 'weight'], 10)
+    """
+    path = Path(run_dir) / POLICY_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} does not exist")
+    record_path = Path(run_dir) / POLICY_RECORD
+    if record_path.is_file():
+        try:
+            record = json.loads(record_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise CorruptPolicyError(f"{record_path} is not valid JSON ({err})") from err
+        if not isinstance(record, dict) or record.get("format") != _RECORD_FORMAT:
+            raise CorruptPolicyError(f"{record_path} is not a {_RECORD_FORMAT} record")
+        size = path.stat().st_size
+        if size != record.get("size"):
+            raise CorruptPolicyError(
+                f"{path} has {size} bytes, its record {record_path.name} says {record.get('size')}"
+                " (truncated or replaced)"
+            )
+        if _sha256(path) != record.get("sha256"):
+            raise CorruptPolicyError(
+                f"{path}'s SHA-256 differs from its record {record_path.name} (damaged or edited)"
+            )
+    else:
+        log.warning("%s has no integrity record %s; loading it unverified", path, POLICY_RECORD)
+    try:
+        saved = torch.load(path, weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile) as err:
+        raise CorruptPolicyError(
+            f"{path} cannot be loaded as a policy export (truncated, damaged, or a pickle this "
+            f"package never loads): {type(err).__name__}: {str(err).splitlines()[0][:200]}"
+        ) from err
+    state = saved.get("state_dict") if isinstance(saved, dict) else None
+    steps = saved.get("real_steps") if isinstance(saved, dict) else None
+    if not isinstance(state, dict) or not all(isinstance(t, torch.Tensor) for t in state.values()):
+        raise CorruptPolicyError(f"{path} is not a policy export (no tensor 'state_dict')")
+    if isinstance(steps, bool) or not isinstance(steps, int):
+        raise CorruptPolicyError(f"{path} is not a policy export (no integer 'real_steps')")
+    bad = [k for k, t in state.items() if t.is_floating_point() and not torch.isfinite(t).all()]
+    if bad:
+        raise CorruptPolicyError(f"{path} holds NaN or Inf weights in {bad}")
+    return state, steps
 
 
 def load_policy(
@@ -68,6 +174,7 @@ def load_policy(
 
     Raises:
         FileNotFoundError: the folder has no ``config.yaml`` or ``policy.pt``.
+        CorruptPolicyError: see :func:`read_policy_state`.
 
     Examples:
         >>> from torchrl_mbmf.runs.export import load_policy
@@ -77,6 +184,7 @@ def load_policy(
     for name in (CONFIG, POLICY_FILE):
         if not (run_dir / name).exists():
             raise FileNotFoundError(f"{run_dir} has no {name}; is it a finished training run?")
+    state, steps = read_policy_state(run_dir)  # verified before anything is built
     cfg = OmegaConf.load(run_dir / CONFIG)
     if env is None:
         env = make_env(
@@ -94,9 +202,8 @@ def load_policy(
         )
     else:
         actor, _ = make_sac_actor_critic(env, hidden_sizes=tuple(cfg.sac.hidden_sizes))
-    saved = torch.load(run_dir / POLICY_FILE, weights_only=True)
-    actor.load_state_dict(saved["state_dict"])
-    return actor, env, {"real_steps": int(saved["real_steps"]), "config": cfg}
+    actor.load_state_dict(state)
+    return actor, env, {"real_steps": steps, "config": cfg}
 
 
 def variant_tag(planner: Any, world_model: Any | None = None) -> str:

@@ -8,6 +8,7 @@ A run folder written by ``recipes/train.py``::
       machine.json                software and hardware            write_record / read_machine
       summary.json                the finished run's summary       write_summary / read_summary
       policy.pt                   the trained policy               runs.export save/load_policy
+      policy.json                 policy.pt's size and SHA-256     runs.export save/load_policy
       train.log                   Hydra's log of the job
       resume_log.json             resumes and restarts             runs.logs / read_resume_log
       logs/scalars/<name>.csv     the logger's CSV series          read_scalar
@@ -44,6 +45,7 @@ __all__ = [
     "LOGS",
     "MACHINE",
     "POLICY",
+    "POLICY_RECORD",
     "RESUME_LOG",
     "SCALARS",
     "SUMMARY",
@@ -59,6 +61,8 @@ GIT_COMMIT = "git_commit.txt"
 MACHINE = "machine.json"
 SUMMARY = "summary.json"
 POLICY = "policy.pt"
+#: ``policy.pt``'s integrity record (size, SHA-256, real steps), verified on load.
+POLICY_RECORD = "policy.json"
 TRAIN_LOG = "train.log"
 RESUME_LOG = "resume_log.json"
 #: The logger's experiment folder; its CSV series lie under ``LOGS/SCALARS``.

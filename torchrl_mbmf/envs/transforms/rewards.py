@@ -78,7 +78,7 @@ class ForwardPenaltyReward(Transform):
 
     def compute(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> torch.Tensor:
         """Reward ``[*batch, 1]`` from the root tensordict (action) and the next one (physics)."""
-        velocity = _last_dim_one(next_tensordict.get(self.velocity_key), self.velocity_key)
+        velocity = _physics_column(next_tensordict, self.velocity_key)
         penalty = self.penalty(tensordict, next_tensordict)
         return (self.forward_weight * velocity - penalty).to(torch.float32)
 
@@ -115,9 +115,19 @@ class ForwardPenaltyReward(Transform):
         return f"{type(self).__name__}({params})"
 
 
-def _last_dim_one(value: torch.Tensor, key: NestedKey) -> torch.Tensor:
-    if value.shape[-1:] != (1,):
+def _physics_column(next_tensordict: TensorDictBase, key: NestedKey) -> torch.Tensor:
+    """The scalar physics quantity ``key`` as ``[*batch, 1]``; refuses other shapes and NaN/Inf."""
+    value = next_tensordict.get(key)
+    batch = tuple(next_tensordict.batch_size)
+    if tuple(value.shape) == batch:
         value = value.unsqueeze(-1)
+    if tuple(value.shape) != (*batch, 1):
+        raise ValueError(
+            f"{key!r} must hold one number per transition, shape {[*batch, 1]} or {list(batch)}, "
+            f"got shape {list(value.shape)}"
+        )
+    if not torch.isfinite(value).all():
+        raise ValueError(f"{key!r} holds NaN or Inf: {value.flatten().tolist()[:8]}")
     return value
 
 
@@ -230,7 +240,7 @@ class HeadPenReward(ForwardPenaltyReward):
 
     def penalty(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> torch.Tensor:
         """``penalty_weight`` where the next head height is below ``threshold``, else 0."""
-        head = _last_dim_one(next_tensordict.get(self.head_height_key), self.head_height_key)
+        head = _physics_column(next_tensordict, self.head_height_key)
         return self.penalty_weight * (head < self.threshold).to(torch.float64)
 
     def parameters_dict(self) -> dict[str, object]:
@@ -321,6 +331,10 @@ class ShinPenReward(ForwardPenaltyReward):
                 f"{self.joint_indices} needs at least {max(self.joint_indices) + 1}"
             )
         front = angles[..., list(self.joint_indices)].double()
+        if not torch.isfinite(front).all():
+            raise ValueError(
+                f"{self.joint_angles_key!r} holds NaN or Inf at joints {self.joint_indices}"
+            )
         thresholds = self._thresholds.to(front.device)
         weights = self._weights.to(front.device)
         return ((front > thresholds).double() * weights).sum(-1, keepdim=True)
