@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,36 +41,19 @@ from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 
-__all__ = ["Trainer", "seed_everything"]
+__all__ = ["Trainer", "parameters_digest", "run_summary", "seed_everything", "time_breakdown"]
 
 
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
 
-    Methods (thesis sections 5.1, 5.4):
-
-    - ``ppo``: stock :class:`~torchrl.objectives.ClipPPOLoss` with GAE on real data.
-    - ``ppo_mpc``: fit the world model on random-policy data (those real steps count), then the
-      :class:`~torchrl_mbmf.modules.PolicyGuidedMPCPlanner` collects ``ppo.frames_per_batch``
-      real steps per PPO update; all real transitions join the dataset, the model is refit on
-      it every ``world_model.refit_every`` updates; after ``planning_updates`` updates the same
-      actor and critic continue as pure PPO on the real env (warm start).
-    - ``mpc``: as ``ppo_mpc`` with the :class:`~torchrl_mbmf.modules.RandomShootingMPCPlanner`
-      (PPO trains on its transitions, as in the thesis).
-    - ``sac`` / ``sac_mpc``: stock :class:`~torchrl.objectives.SACLoss` with a replay buffer;
-      ``sac_mpc`` acts through the policy-guided planner with the SAC actor, starts its replay
-      buffer with the random-data steps and refits the model every
-      ``sac.refit_every_steps`` real steps.
-
-    Every real env step counts toward ``total_steps``, the random-data steps included.
-    Checkpoints (``torchrl.checkpoint``, atomic, rotated) are written every
-    ``checkpoint.every_steps`` real steps, between two collectors: the collector is closed and
-    the next one starts from envs reseeded with ``seed + real_steps``, so the episode in
-    progress is truncated there (GAE bootstraps it like any batch end). This happens in an
-    uninterrupted run exactly as in a resumed one, so a run killed and resumed from its latest
-    checkpoint ends with the same weights as one that never stopped (on CPU, same thread count).
-    A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint (see
-    :class:`~torchrl_mbmf.runs.resume.RunCheckpoint`).
+    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` and ``sac_mpc`` (thesis sections 5.1, 5.4): the
+    :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule` says which policy acts, the agent
+    learns from every batch, the hooks log, refit the model, evaluate and checkpoint. Every
+    real env step counts toward ``total_steps``. A new ``Trainer`` on the same ``run_dir``
+    resumes from its latest checkpoint and ends with the same weights as an uninterrupted
+    run (:class:`~torchrl_mbmf.runs.checkpoint.RunCheckpoint`). The methods and why
+    checkpoints end the episode in progress: ``docs/design/loop.md``.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -285,63 +269,107 @@ class Trainer:
 
     def evaluate(self) -> float:
         """Mean return of the policy alone, deterministic, over ``eval_episodes`` episodes."""
-        steps = self.progress.real_steps
-        self.eval_env.set_seed(self.settings.seed + 1000 + steps)
-        kind = self.settings.collector
-        episodes = self.settings.eval_episodes
-        return evaluate_policy(self.eval_env, self.agent.actor, episodes, self.device, kind, steps)
+        steps, s = self.progress.real_steps, self.settings
+        self.eval_env.set_seed(s.seed + 1000 + steps)
+        return evaluate_policy(
+            self.eval_env, self.agent.actor, s.eval_episodes, self.device, s.collector, steps
+        )
 
     def save_checkpoint(self) -> None:
         """Atomically writes a rotated checkpoint of everything needed to continue."""
         self.run_checkpoint.save(self.agent.actor)
 
-    # -------------------------------------------------------------- summary
     def write_summary(self, seconds: float) -> dict[str, Any]:
-        """The run's summary (also written to ``summary.json``)."""
-        settings, progress = self.settings, self.progress
-        last = progress.last_returns
-        summary = {
-            "method": settings.method,
-            "env": settings.env_id,
-            "reward": settings.reward,
-            "seed": settings.seed,
-            **{k: progress[k] for k in ("real_steps", "random_steps", "updates", "episodes")},
-            "switch_step": progress.switch_step,
-            "last10_mean_return": float(np.mean(last)) if last else None,
-            "final_eval_return": self.evaluate() if settings.eval_episodes > 0 else None,
-            "params_sha256": self.parameters_digest(),
-            "seconds": seconds,
-            "resumed": self.resumed,
-        }
-        summary["time_breakdown"] = self.time_breakdown(summary["seconds"])
+        """Writes and returns the run's summary (:func:`run_summary`) after ``seconds``."""
+        final = self.evaluate() if self.settings.eval_episodes > 0 else None
+        summary = run_summary(
+            self.settings, self.progress, final, self.parameters_digest(), seconds, self.resumed
+        )
+        summary["time_breakdown"] = time_breakdown(self.times, seconds)
         RunFolder(self.run_dir).write_summary(summary)
         return summary
 
-    def time_breakdown(self, seconds: float) -> dict[str, float]:
-        """Where this process' training time went, in seconds.
-
-        ``env_s``: real env steps with their transforms (with the stock collector, the policy's
-        time too); ``act_s``: the actor or planner; ``update_s``: PPO/SAC updates; ``refit_s``:
-        world-model refits; ``other_s``: the rest (logging, evaluation, checkpoints, datasets).
-
-        Args:
-            seconds: the wall time the breakdown splits.
-
-        Examples:
-            >>> from torchrl_mbmf.trainers import Trainer
-            >>> sorted(Trainer.TIME_KEYS)
-            ['act_s', 'env_s', 'refit_s', 'update_s']
-        """
-        out = {key: float(self.times[key]) for key in self.TIME_KEYS}
-        out["other_s"] = max(0.0, float(seconds) - sum(out.values()))
-        return out
-
     def parameters_digest(self) -> str:
         """SHA-256 of every trained tensor (policy, critics, world model): equal runs match."""
-        digest = hashlib.sha256()
         modules = [self.agent.loss] + ([self.world.model] if self.world is not None else [])
-        for module in modules:
-            for name, tensor in sorted(module.state_dict().items()):
-                digest.update(name.encode())
-                digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-        return digest.hexdigest()
+        return parameters_digest(modules)
+
+
+def run_summary(
+    settings: TrainSettings,
+    progress: Progress,
+    final_eval_return: float | None,
+    params_sha256: str,
+    seconds: float,
+    resumed: bool,
+) -> dict[str, Any]:
+    """A finished run's summary: what ran, its counts, its returns, its weights' digest.
+
+    Args:
+        settings: the run's settings.
+        progress: the loop state at the end.
+        final_eval_return: the final evaluation's mean return (``None``: no evaluation).
+        params_sha256: :func:`parameters_digest` of the trained modules.
+        seconds: the training wall time.
+        resumed: whether this process resumed from a checkpoint.
+
+    Examples:
+        >>> settings = TrainSettings("ppo", 0, 400, 200, 0, 400, 2, "Pendulum-v1", "default")
+        >>> summary = run_summary(settings, Progress(real_steps=400), None, "ab", 1.5, False)
+        >>> summary["real_steps"], summary["last10_mean_return"]
+        (400, None)
+    """
+    last = progress.last_returns
+    return {
+        "method": settings.method,
+        "env": settings.env_id,
+        "reward": settings.reward,
+        "seed": settings.seed,
+        **{k: progress[k] for k in ("real_steps", "random_steps", "updates", "episodes")},
+        "switch_step": progress.switch_step,
+        "last10_mean_return": float(np.mean(last)) if last else None,
+        "final_eval_return": final_eval_return,
+        "params_sha256": params_sha256,
+        "seconds": seconds,
+        "resumed": resumed,
+    }
+
+
+def time_breakdown(times: Mapping[str, float], seconds: float) -> dict[str, float]:
+    """Where a process' training time went, in seconds.
+
+    ``env_s``: real env steps with their transforms (with the stock collector, the policy's
+    time too); ``act_s``: the actor or planner; ``update_s``: PPO/SAC updates; ``refit_s``:
+    world-model refits; ``other_s``: the rest (logging, evaluation, checkpoints, datasets).
+
+    Args:
+        times: the measured seconds of :data:`Trainer.TIME_KEYS`.
+        seconds: the wall time the breakdown splits.
+
+    Examples:
+        >>> time_breakdown({"env_s": 1.0, "act_s": 2.0, "update_s": 3.0, "refit_s": 0.0}, 10)
+        {'env_s': 1.0, 'act_s': 2.0, 'update_s': 3.0, 'refit_s': 0.0, 'other_s': 4.0}
+    """
+    out = {key: float(times[key]) for key in Trainer.TIME_KEYS}
+    out["other_s"] = max(0.0, float(seconds) - sum(out.values()))
+    return out
+
+
+def parameters_digest(modules: Sequence[torch.nn.Module]) -> str:
+    """SHA-256 of every tensor of ``modules``' state dicts, in name order.
+
+    Args:
+        modules: the modules (their ``state_dict``).
+
+    Examples:
+        >>> a, b = torch.nn.Linear(2, 1), torch.nn.Linear(2, 1)
+        >>> _ = b.load_state_dict(a.state_dict())
+        >>> parameters_digest([a]) == parameters_digest([b])
+        True
+    """
+    digest = hashlib.sha256()
+    for module in modules:
+        for name, tensor in sorted(module.state_dict().items()):
+            digest.update(name.encode())
+            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
