@@ -37,6 +37,7 @@ def main(cfg: DictConfig) -> None:
         render=bool(cfg.render),
         gait_steps=gait_steps,
         collect=bool(cfg.collect),
+        clip_seconds=float(cfg.get("clip_seconds", 0)),
     )
     log.info("%d runs analysed into %s", len(analysis["runs"]), cfg.out_dir)
     for q, v in analysis["verdicts"].items():

@@ -297,3 +297,113 @@ def test_a_planning_checkpoint_compacted_to_its_replay_resumes_exactly(
     resumed = json.loads((fresh / "summary.json").read_text())
     reference = json.loads((straight_run / "summary.json").read_text())
     assert resumed["params_sha256"] == reference["params_sha256"]
+
+
+def _signal_after_first_checkpoint(run_dir: Path, sig: signal.Signals, *overrides: str):
+    proc = subprocess.Popen(
+        [sys.executable, TRAIN, *overrides, f"run_dir={run_dir}"],
+        cwd=run_dir.parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+    )
+    deadline = time.time() + 300
+    while not list((run_dir / "checkpoints").glob("checkpoint-*")):
+        assert proc.poll() is None and time.time() < deadline, "no checkpoint was written"
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=300)
+    return proc.returncode, out + err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_signal_saves_and_the_rerun_ends_like_an_uninterrupted_run(tmp_path, sig):
+    cfg = ["method=ppo", *TINY, "checkpoint.every_steps=320"]
+    straight = tmp_path / "straight"
+    assert _run(straight, *cfg).returncode == 0
+    run = tmp_path / "stopped"
+    code, output = _signal_after_first_checkpoint(run, sig, *cfg)
+    assert code == 0, output[-3000:]
+    assert f"stopped by {sig.name} after the checkpoint at" in output
+    assert "Traceback" not in output
+    assert not (run / "summary.json").exists()
+    done = _run(run, *cfg)
+    assert done.returncode == 0, done.stderr[-3000:]
+    resumed = json.loads((run / "summary.json").read_text())
+    reference = json.loads((straight / "summary.json").read_text())
+    assert resumed["resumed"] is True
+    for key in ("real_steps", "updates", "episodes", "params_sha256"):
+        assert resumed[key] == reference[key], key
+
+
+def test_a_run_folder_is_the_runs(tmp_path):
+    cfg = ["method=ppo", *TINY, "total_steps=400", "checkpoint.every_steps=160"]
+    # a folder with the user's own files is refused, and nothing in it is touched
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("precious")
+    proc = _run(mine, *cfg)
+    assert proc.returncode != 0 and "files that are not a training run's: ['thesis.tex']" in (
+        proc.stderr
+    )
+    assert sorted(p.name for p in mine.iterdir() if p.name not in (".hydra", "train.log")) == [
+        "thesis.tex"
+    ]
+    # a finished run is refused (its checkpoints removed too), restart=true moves it aside
+    run = tmp_path / "run"
+    assert _run(run, *cfg).returncode == 0
+    summary = (run / "summary.json").read_text()
+    proc = _run(run, *cfg)
+    steps = json.loads(summary)["real_steps"]
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (
+        f"holds this config's finished run (summary.json: {steps} real steps)"
+        in proc.stdout + proc.stderr
+    )
+    assert (run / "summary.json").read_text() == summary
+    shutil.rmtree(run / "checkpoints")
+    rows = _csv_logs(run)
+    for override in ("seed=1", "total_steps=800"):  # another config, a larger budget
+        proc = _run(run, *cfg, override)
+        assert proc.returncode != 0 and "restart=true" in proc.stderr, override
+    proc = _run(run, *cfg)  # the same config: nothing to train, nothing touched
+    assert proc.returncode == 0 and "nothing to train" in proc.stdout + proc.stderr
+    assert _csv_logs(run) == rows and (run / "summary.json").read_text() == summary
+    proc = _run(run, *cfg, "restart=true")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (aside,) = run.glob("replaced-*")
+    assert (aside / "summary.json").read_text() == summary
+    assert _csv_logs(aside) == rows
+
+
+def test_a_second_process_on_a_run_folder_is_refused(tmp_path):
+    from torchrl_mbmf.runs.claim import RunFolderLock
+
+    run = tmp_path / "run"
+    run.mkdir()
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pathlib import Path; "
+            "from torchrl_mbmf.runs.claim import RunFolderLock; "
+            f"lock = RunFolderLock(Path({str(run)!r})).acquire(); print('locked', flush=True); "
+            "time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=ENV,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        proc = _run(run, "method=ppo", *TINY, "total_steps=400")
+        assert proc.returncode != 0
+        assert f"is in use by process {holder.pid}" in proc.stderr, proc.stderr[-2000:]
+    finally:
+        holder.kill()
+        holder.wait()
+    # the dead holder's lock is taken over
+    lock = RunFolderLock(run).acquire()
+    assert lock.held
+    lock.release()

@@ -175,8 +175,10 @@ def _curves_figure(
     return path.name
 
 
-def _gait(runs: dict[str, Run], out_dir: Path, *, steps: int, render: bool) -> dict[str, Any]:
-    """Gait metrics (and frames) of one trained policy per label."""
+def _gait(
+    runs: dict[str, Run], out_dir: Path, *, steps: int, render: bool, clip_seconds: float = 0.0
+) -> dict[str, Any]:
+    """Gait metrics (and frames, and a video clip if ``clip_seconds``) of one policy per label."""
     from torchrl_mbmf.analysis.gait import frame_strip, gait_metrics, record_gait, render_states
 
     metrics, out = {}, {"policies": {}, "metrics": {}}
@@ -200,6 +202,12 @@ def _gait(runs: dict[str, Run], out_dir: Path, *, steps: int, render: bool) -> d
             name = f"gait_frames_{label}.png"
             save_image(frame_strip(frames, num=8), out_dir / name)
             out["policies"][label]["frames"] = name
+        if render and clip_seconds > 0:
+            from torchrl_mbmf.analysis.video import record_policy
+
+            clip = f"clip_{label}.mp4"
+            record_policy(run.path, out_dir / clip, seconds=clip_seconds)
+            out["policies"][label]["clip"] = clip
     if metrics:
         plot_gait_comparison(metrics, out_dir / "gait.png")
         out["figure"] = "gait.png"
@@ -403,6 +411,7 @@ def analyze_experiments(
     render: bool = True,
     gait_steps: int = 60,
     collect: bool = True,
+    clip_seconds: float = 0.0,
 ) -> dict[str, Any]:
     """Analyses experiments 1-4 over the runs under ``run_roots`` and writes figures and JSON.
 
@@ -424,6 +433,9 @@ def analyze_experiments(
             display). Defaults to ``True``.
         gait_steps: steps of the gait rollout. Defaults to ``60`` (the thesis' figures).
         collect: copy each run's small files under ``out_dir/runs``. Defaults to ``True``.
+        clip_seconds: with ``gait`` and ``render``, a video of that many seconds of each gait
+            policy (``clip_<reward>.mp4``, :func:`~torchrl_mbmf.analysis.video.record_policy`;
+            needs the video extra). Defaults to ``0`` (no clips).
 
     Returns:
         The analysis (also written to ``out_dir/analysis.json``).
@@ -554,7 +566,9 @@ def analyze_experiments(
             for rw, v in log_std.items()
             if any((r.path / POLICY).exists() for r in v)
         }
-        analysis["gait"] = _gait(seed0, out_dir, steps=gait_steps, render=render)
+        analysis["gait"] = _gait(
+            seed0, out_dir, steps=gait_steps, render=render, clip_seconds=clip_seconds
+        )
 
     # Experiment 4: SAC vs SAC-MPC (figure 17).
     exp4 = {m: sel(m) for m in ("sac", "sac_mpc")}

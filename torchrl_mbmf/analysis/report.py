@@ -369,6 +369,8 @@ def _section(name: str, analysis: Mapping[str, Any], rel: str) -> list[str]:
             out += _figure(
                 rel, p.get("frames"), f"gait frames, {label} reward (figures 18, 20, 21)"
             )
+            if p.get("clip"):
+                out += [f"[Video: the {label} policy]({rel}/{p['clip']})", ""]
     out += ["### Experiment 4: SAC vs SAC-MPC (figure 17)", ""]
     out += _comparison_md(analysis["exp4"], rel, "SAC vs SAC-MPC", THESIS["exp4"])
     sb3 = analysis.get("sb3") or {}

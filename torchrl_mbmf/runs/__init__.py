@@ -1,6 +1,12 @@
 """The run folder on disk: its files, checkpoints, resume, logs, exported policy, compact data."""
 
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
+from torchrl_mbmf.runs.claim import (
+    FinishedRunError,
+    RunFolderError,
+    RunFolderLock,
+    claim_run_folder,
+)
 from torchrl_mbmf.runs.dataset_replay import DatasetReplay, compact_checkpoint, expand_checkpoint
 from torchrl_mbmf.runs.export import load_policy, save_policy, variant_tag
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
@@ -8,8 +14,12 @@ from torchrl_mbmf.runs.resume import fingerprint
 
 __all__ = [
     "DatasetReplay",
+    "FinishedRunError",
     "RunCheckpoint",
     "RunFolder",
+    "RunFolderError",
+    "RunFolderLock",
+    "claim_run_folder",
     "compact_checkpoint",
     "expand_checkpoint",
     "fingerprint",

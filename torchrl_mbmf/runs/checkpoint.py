@@ -22,15 +22,18 @@ written and checked is :mod:`torchrl_mbmf.runs.storage`; what a resume may chang
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
 import torch
+from tensordict import NestedKey
 from torchrl.checkpoint import CheckpointRotation, GlobalRNGState, JSONCheckpointAdapter
-from torchrl.record.loggers import CSVLogger
+from torchrl.data import TensorDictReplayBuffer
+from torchrl.record.loggers import CSVLogger, Logger
 
 from torchrl_mbmf.checks import ConfigError
+from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.runs.export import save_policy
 from torchrl_mbmf.runs.layout import CHECKPOINTS
 from torchrl_mbmf.runs.logs import append_resume_log, cut_csv_logs
@@ -147,12 +150,12 @@ class RunCheckpoint:
         run_dir: Path,
         progress: ProgressRecord,
         tensors: Mapping[str, Any],
-        logger: Any,
+        logger: Logger | None,
         *,
         keep_last: int = 2,
-        dataset: Any = None,
+        dataset: TransitionDataset | None = None,
         dataset_needed: Callable[[Any], bool] | None = None,
-        replay: tuple[Any, Any] | None = None,
+        replay: tuple[TensorDictReplayBuffer, Sequence[NestedKey]] | None = None,
         backend: str = "csv",
     ) -> None:
         self.run_dir = Path(run_dir)

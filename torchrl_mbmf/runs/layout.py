@@ -11,6 +11,8 @@ A run folder written by ``recipes/train.py``::
       policy.json                 policy.pt's size and SHA-256     runs.export save/load_policy
       train.log                   Hydra's log of the job
       resume_log.json             resumes and restarts             runs.logs / read_resume_log
+      run.lock                    the running process' pid         runs.claim.RunFolderLock
+      replaced-<time>/            a run moved aside by restart     runs.claim.claim_run_folder
       logs/scalars/<name>.csv     the logger's CSV series          read_scalar
       checkpoints/<step>/         rotated verified checkpoints     runs.resume.RunCheckpoint
       world_models/fit-<n>/       one snapshot per model fit       world_model.snapshots
@@ -42,6 +44,7 @@ __all__ = [
     "FITS",
     "FIT_ERRORS",
     "GIT_COMMIT",
+    "LOCK",
     "LOGS",
     "MACHINE",
     "POLICY",
@@ -65,6 +68,8 @@ POLICY = "policy.pt"
 POLICY_RECORD = "policy.json"
 TRAIN_LOG = "train.log"
 RESUME_LOG = "resume_log.json"
+#: The advisory lock of a running run (:class:`~torchrl_mbmf.runs.claim.RunFolderLock`).
+LOCK = "run.lock"
 #: The logger's experiment folder; its CSV series lie under ``LOGS/SCALARS``.
 LOGS = "logs"
 SCALARS = "scalars"

@@ -19,6 +19,7 @@ from torchrl_mbmf.methods import MODEL_BASED, PPO_METHODS
 
 __all__ = [
     "DEFAULT_TARGETS",
+    "IMPLIED_DEFAULTS",
     "RESUME_SAFE_SETTINGS",
     "fingerprint",
     "resume_changes",
@@ -53,6 +54,7 @@ RESUME_SAFE_SETTINGS: tuple[str, ...] = (
     "world_model.save_fits",
     "run_dir",
     "run_name",
+    "restart",
     "budget.name",
     "experiment.",
 )
@@ -94,11 +96,18 @@ def resume_changes(
     return refused, allowed
 
 
-def _implied(key: str, missing: str) -> str:
+#: Settings added after runs were written, with the value a config without them means.
+IMPLIED_DEFAULTS: dict[str, Any] = {"restart": False}
+
+
+def _implied(key: str, missing: str) -> Any:
     """The value a config without ``key`` means (``missing`` but for a group's ``_target_``).
 
-    A config written before the groups named their builders means the default ones.
+    A config written before the groups named their builders means the default ones; one
+    written before a setting of :data:`IMPLIED_DEFAULTS` existed means its default.
     """
+    if key in IMPLIED_DEFAULTS:
+        return IMPLIED_DEFAULTS[key]
     group, _, name = key.partition(".")
     return DEFAULT_TARGETS[group] if name == "_target_" and group in DEFAULT_TARGETS else missing
 

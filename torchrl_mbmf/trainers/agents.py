@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModuleBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -393,7 +394,7 @@ class SACAgent:
         return MinQValue(self.actor, self.critic, self.loss.qvalue_network_params)
 
 
-def make_agent(method_family: str, env: EnvBase, cfg: Any, device: torch.device) -> Agent:
+def make_agent(method_family: str, env: EnvBase, cfg: DictConfig, device: torch.device) -> Agent:
     """The agent of ``method_family`` (``"ppo"`` or ``"sac"``) built from ``cfg[method_family]``.
 
     The group is built by :func:`~torchrl_mbmf.trainers.components.instantiate_group`: its

@@ -6,10 +6,10 @@ import copy
 import random
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
@@ -25,6 +25,7 @@ from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.hooks import (
     EpisodeLog,
     Evaluation,
+    HookFn,
     Hooks,
     ModelData,
     ModelRefit,
@@ -32,6 +33,7 @@ from torchrl_mbmf.trainers.hooks import (
     SaveCheckpoint,
     StepTiming,
 )
+from torchrl_mbmf.trainers.progress import RunPlan
 
 __all__ = [
     "LOGGERS",
@@ -62,7 +64,7 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def make_train_env(cfg: Any, seed: int, num_envs: int | None = None) -> EnvBase:
+def make_train_env(cfg: DictConfig, seed: int, num_envs: int | None = None) -> EnvBase:
     """The env of the ``env`` and ``reward`` config groups.
 
     Args:
@@ -152,7 +154,7 @@ def make_collector(
 
 def evaluate_policy(
     env: EnvBase,
-    actor: Any,
+    actor: TensorDictModuleBase,
     episodes: int,
     device: torch.device,
     kind: str = "lean",
@@ -199,7 +201,7 @@ def evaluate_policy(
     return mean
 
 
-def make_hooks(cfg: Any, model_based: bool) -> tuple[Hooks, dict[str, Any]]:
+def make_hooks(cfg: DictConfig, model_based: bool) -> tuple[Hooks, dict[str, HookFn]]:
     """The loop's hooks of ``cfg``, and the ones the loop also calls by name.
 
     Args:
@@ -218,7 +220,12 @@ def make_hooks(cfg: Any, model_based: bool) -> tuple[Hooks, dict[str, Any]]:
         ['StepTiming', 'Evaluation']
     """
     named = {
-        "bar": ProgressBar(int(cfg.total_steps), cfg.method, bool(cfg.progress)),
+        "bar": ProgressBar(
+            int(cfg.total_steps),
+            cfg.method,
+            bool(cfg.progress),
+            RunPlan.from_config(cfg) if cfg.progress else None,
+        ),
         "timing": StepTiming(),
         "checkpoints": SaveCheckpoint(int(cfg.checkpoint.every_steps)),
     }

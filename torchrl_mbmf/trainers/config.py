@@ -69,6 +69,7 @@ TRAIN_SETTINGS: dict[str, Setting] = {
     "threads": _int(1, nullable=True, **_OPTIONAL),
     "run_name": Setting("str", **_OPTIONAL),
     "run_dir": Setting("str", **_OPTIONAL),
+    "restart": Setting("bool", **_OPTIONAL),
     "budget.name": Setting("str", **_OPTIONAL),
     "env.id": Setting("str"),
     "env.num_envs": _int(1),

@@ -26,6 +26,7 @@ import numpy as np
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
+from torchrl_mbmf.trainers.progress import BAR_FORMAT, RunPlan, TrainerETA
 from torchrl_mbmf.trainers.schedule import Actor, Progress
 
 if TYPE_CHECKING:
@@ -106,10 +107,15 @@ class Hooks:
 class ProgressBar(Hook):
     """A ``tqdm`` bar of real steps (``collected``); disabled with ``progress=false``.
 
+    Its ETA is the run's phase-aware estimate (:class:`~torchrl_mbmf.trainers.progress.TrainerETA`:
+    random data, planning with refits and model-free steps at their measured rates).
+
     Args:
         total: the run's real-step budget.
         desc: the bar's label.
         enabled: whether the bar shows.
+        plan: the run's phases for the ETA (:meth:`RunPlan.from_config`); ``None``: no ETA.
+            Defaults to ``None``.
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import ProgressBar
@@ -117,19 +123,30 @@ class ProgressBar(Hook):
         True
     """
 
-    def __init__(self, total: int, desc: str, enabled: bool) -> None:
-        self.total, self.desc, self.enabled = total, desc, enabled
+    def __init__(self, total: int, desc: str, enabled: bool, plan: RunPlan | None = None) -> None:
+        self.total, self.desc, self.enabled, self.plan = total, desc, enabled, plan
         self.bar: tqdm | None = None
+        self.eta: TrainerETA | None = None
 
     def open(self, initial: int) -> None:
         """Shows the bar from ``initial`` steps."""
         self.bar = tqdm(
-            total=self.total, initial=initial, desc=self.desc, unit="step", disable=not self.enabled
+            total=self.total,
+            initial=initial,
+            desc=self.desc,
+            unit="step",
+            disable=not self.enabled,
+            bar_format=BAR_FORMAT,
         )
+        self.opened = time.perf_counter()
 
     def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if self.bar is not None:
+            if self.enabled and self.plan is not None:
+                if self.eta is None:
+                    self.eta = TrainerETA(self.plan, start=self.opened)
+                self.bar.set_postfix_str(self.eta(trainer, batch), refresh=False)
             self.bar.update(batch.numel())
 
     def close(self) -> None:

@@ -24,6 +24,7 @@ from torchrl.envs.utils import RandomPolicy
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
+from torchrl_mbmf.runs.claim import claim_run_folder
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
 from torchrl_mbmf.trainers.agents import Agent, make_agent
@@ -40,8 +41,16 @@ from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
+from torchrl_mbmf.trainers.signals import StopRequest
 
-__all__ = ["Trainer", "parameters_digest", "run_summary", "seed_everything", "time_breakdown"]
+__all__ = [
+    "Trainer",
+    "make_run_checkpoint",
+    "parameters_digest",
+    "run_summary",
+    "seed_everything",
+    "time_breakdown",
+]
 
 
 class Trainer:
@@ -112,41 +121,22 @@ class Trainer:
         )
         self.frames_per_batch = settings.frames_per_batch
         self.total_steps = settings.total_steps
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        # The folder is this run's (locked; a finished or foreign run refused) before anything
+        # is written to it; a refused setting above has written nothing.
+        self.lock = claim_run_folder(
+            self.run_dir, flatten_config(cfg), restart=bool(cfg.get("restart", False))
+        )
         self.logger = instantiate_group(cfg, "logger", run_dir=self.run_dir)
         self.hooks, named = make_hooks(cfg, self.schedule.model_based)
-        self.bar, self.timing, self.checkpoints = (
-            named["bar"],
-            named["timing"],
-            named["checkpoints"],
-        )
+        self.bar, self.timing = named["bar"], named["timing"]
+        self.checkpoints = named["checkpoints"]
         self.acting = self.schedule.actor(self.progress)
         self.batch_time = time.perf_counter()
-        self.run_checkpoint = self._make_checkpoint()
+        self.run_checkpoint = make_run_checkpoint(self)
         self.resumed = self.run_checkpoint.resume()
         if self.resumed and self.world is not None:
             self.world.restore(self.progress)
         write_run_record(self.run_dir, cfg)
-
-    def _make_checkpoint(self) -> RunCheckpoint:
-        tensors = dict(self.agent.checkpoint_components())
-        if self.world is not None:
-            tensors.update(self.world.checkpoint_components())
-        return RunCheckpoint(
-            self.run_dir,
-            self.progress,
-            tensors,
-            self.logger,
-            keep_last=self.settings.keep_last,
-            dataset=None if self.world is None else self.world.dataset,
-            dataset_needed=self.schedule.dataset_needed,
-            replay=None
-            if self.agent.replay is None
-            else (self.agent.replay, self.agent.loss.in_keys),
-            backend=self.settings.logger_backend,
-        )
-
-    # ----------------------------------------------------------------- loop
 
     def count(self, batch: TensorDictBase, random: bool = False) -> None:
         """Counts a collected batch's real steps and runs the ``collected`` hooks."""
@@ -216,14 +206,32 @@ class Trainer:
         return self.schedule.round_over(progress, self.acting)
 
     def train(self) -> dict[str, Any]:
-        """Runs until ``total_steps`` real steps; returns (and writes) a summary."""
+        """Runs until ``total_steps`` real steps; returns (and writes) a summary.
+
+        A SIGTERM or SIGINT stops the run after its next scheduled checkpoint (see
+        :mod:`~torchrl_mbmf.trainers.signals`); the return value then says so and no summary is
+        written.
+        """
+        try:
+            with StopRequest() as stop:
+                return self._train(stop)
+        finally:
+            self.lock.release()
+
+    def _train(self, stop: StopRequest) -> dict[str, Any]:
         self.bar.open(self.progress.real_steps)
         self.timing.open(self.progress.real_steps)
         start = time.perf_counter()
         if self.schedule.phase(self.progress) is Phase.RANDOM:
             self.collect_random()
         while self.progress.real_steps < self.total_steps:
+            saved_before = self.progress.next_checkpoint
             self.collect_round()
+            stop.keep_installed()
+            if stop.requested and self.progress.next_checkpoint != saved_before:
+                self.bar.close()
+                steps = self.progress.real_steps
+                return {"stopped_by": stop.requested, "real_steps": steps, "checkpoint": steps}
         self.bar.close()
         self.save_checkpoint()
         return self.write_summary(time.perf_counter() - start)
@@ -293,6 +301,34 @@ class Trainer:
         """SHA-256 of every trained tensor (policy, critics, world model): equal runs match."""
         modules = [self.agent.loss] + ([self.world.model] if self.world is not None else [])
         return parameters_digest(modules)
+
+
+def make_run_checkpoint(trainer: Trainer) -> RunCheckpoint:
+    """The checkpoint of a trainer's run (the parts in :mod:`torchrl_mbmf.runs.checkpoint`).
+
+    Args:
+        trainer: the trainer (its parts are built).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.loop import make_run_checkpoint
+        >>> callable(make_run_checkpoint)
+        True
+    """
+    agent, world = trainer.agent, trainer.world
+    tensors = dict(agent.checkpoint_components())
+    if world is not None:
+        tensors.update(world.checkpoint_components())
+    return RunCheckpoint(
+        trainer.run_dir,
+        trainer.progress,
+        tensors,
+        trainer.logger,
+        keep_last=trainer.settings.keep_last,
+        dataset=None if world is None else world.dataset,
+        dataset_needed=trainer.schedule.dataset_needed,
+        replay=None if agent.replay is None else (agent.replay, agent.loss.in_keys),
+        backend=trainer.settings.logger_backend,
+    )
 
 
 def run_summary(

@@ -30,6 +30,7 @@ from torchrl_mbmf.modules.planners import (
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
+from torchrl_mbmf.trainers.agents import Agent
 from torchrl_mbmf.trainers.schedule import Progress
 from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
@@ -223,7 +224,7 @@ class WorldModelPart:
     def __init__(
         self,
         env: EnvBase,
-        agent: Any,
+        agent: Agent,
         device: torch.device,
         planner: Callable[..., TensorDictModuleBase],
         seed: int,

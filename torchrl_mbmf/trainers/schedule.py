@@ -15,6 +15,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from omegaconf import DictConfig
+
 __all__ = ["Actor", "Phase", "PhaseSchedule", "Progress"]
 
 
@@ -202,7 +204,7 @@ class PhaseSchedule:
             )
 
     @classmethod
-    def from_config(cls, cfg: Any) -> PhaseSchedule:
+    def from_config(cls, cfg: DictConfig) -> PhaseSchedule:
         """The schedule of ``cfg.method``: each method reads only its own settings.
 
         Args:

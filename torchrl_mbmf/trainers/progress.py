@@ -1,0 +1,341 @@
+"""An honest ETA for a run, from the phases it will go through and their measured rates.
+
+A run's real steps do not cost the same: random-policy steps fit the first world model at
+thousands of steps per second, planned steps cost a policy-guided plan each (a few ms), the
+model refits take minutes that grow with the dataset, and the model-free fine-tuning runs at
+the pace of the env and the agent's updates. A plain steps-per-second ETA (``tqdm``'s) is
+therefore wrong by an order of magnitude during the random-data phase. Here the remaining time
+is the sum over what is left of the run's :class:`RunPlan` (who acts over which real steps,
+and the dataset size of every model fit) of the per-actor seconds per step and the refit
+seconds per transition measured so far (:class:`PhaseETA`). The agent's pace before the
+model-free phase has begun is estimated as a random step plus the agent's update per step
+measured while planning.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tensordict import TensorDictBase
+
+from torchrl_mbmf.trainers.schedule import Actor
+
+__all__ = [
+    "BAR_FORMAT",
+    "PhaseETA",
+    "RunPlan",
+    "TrainerETA",
+    "end_of_run_message",
+    "format_seconds",
+]
+
+#: ``tqdm``'s default layout without its step-rate ETA (``{remaining}``); ours is the postfix.
+BAR_FORMAT = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]"
+
+
+def format_seconds(seconds: float | None) -> str:
+    """``h:mm:ss`` (``?`` for an unknown duration).
+
+    Args:
+        seconds: a duration, or ``None``.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.progress import format_seconds
+        >>> format_seconds(3725.4), format_seconds(59), format_seconds(None)
+        ('1:02:05', '0:00:59', '?')
+    """
+    if seconds is None or not math.isfinite(seconds):
+        return "?"
+    s = round(max(0.0, seconds))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run will do, in real steps: who acts over which steps, and when the model fits.
+
+    Args:
+        total_steps: the run's real-step budget.
+        segments: ``(actor, start, end)`` real-step ranges, in order, covering the budget.
+        fits: dataset sizes (real transitions) of every world-model fit, the first included.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.progress import RunPlan
+        >>> from torchrl_mbmf.trainers.schedule import Actor
+        >>> plan = RunPlan(100, ((Actor.RANDOM, 0, 20), (Actor.PLANNER, 20, 100)), (20, 60))
+        >>> plan.steps_left(Actor.PLANNER, 50), plan.fits_left(50)
+        (50, (60,))
+    """
+
+    total_steps: int
+    segments: tuple[tuple[Actor, int, int], ...]
+    fits: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.total_steps < 1:
+            raise ValueError(f"RunPlan: total_steps must be >= 1, got {self.total_steps}")
+        for actor, start, end in self.segments:
+            if not isinstance(actor, Actor) or not 0 <= start <= end:
+                raise ValueError(
+                    f"RunPlan: a segment must be (Actor, start, end) with 0 <= start <= end, "
+                    f"got {(actor, start, end)!r}"
+                )
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> RunPlan:
+        """The plan of a ``train`` config, as :class:`~torchrl_mbmf.trainers.loop.Trainer` runs it.
+
+        Args:
+            cfg: the composed training config (``method``, ``total_steps``, ``env.num_envs``,
+                ``world_model``, ``planning_updates``, ``ppo`` / ``sac``).
+
+        Examples:
+            >>> from omegaconf import OmegaConf
+            >>> from torchrl_mbmf.trainers.progress import RunPlan
+            >>> cfg = OmegaConf.create({"method": "ppo_mpc", "total_steps": 1000000,
+            ...     "planning_updates": 200, "env": {"num_envs": 1},
+            ...     "world_model": {"random_steps": 10000, "refit_every": 50},
+            ...     "ppo": {"frames_per_batch": 2048}})
+            >>> plan = RunPlan.from_config(cfg)
+            >>> [(a.value, s, e) for a, s, e in plan.segments]
+            [('random', 0, 10000), ('planner', 10000, 419600), ('agent', 419600, 1000000)]
+            >>> plan.fits
+            (10000, 112400, 214800, 317200)
+        """
+        method, total = str(cfg.method), int(cfg.total_steps)
+        family = "sac" if method.startswith("sac") else "ppo"
+        batch = int(cfg[family].frames_per_batch)
+        if method in ("ppo", "sac"):
+            random_end = 0
+            if method == "sac":
+                random_end = min(total, -(-int(cfg.sac.init_random_frames) // batch) * batch)
+            segments = ((Actor.RANDOM, 0, random_end), (Actor.AGENT, random_end, total))
+            return cls(total, tuple(s for s in segments if s[2] > s[1]))
+        # the random-data phase: batches of up to 1000 steps per env (Trainer.collect_random)
+        n = max(1, int(cfg.env.get("num_envs", 1) or 1))
+        wanted = int(cfg.world_model.random_steps)
+        frames = min(1000 * n, -(-wanted // n) * n)
+        random_end = min(total, -(-wanted // frames) * frames)
+        fits = [random_end]
+        if method == "sac_mpc":
+            every, step, next_fit = int(cfg.sac.refit_every_steps), random_end, random_end
+            next_fit += every
+            while step < total:
+                step += batch
+                if step >= next_fit:
+                    fits.append(step)
+                    next_fit += every
+            segments = ((Actor.RANDOM, 0, random_end), (Actor.PLANNER, random_end, total))
+            return cls(total, segments, tuple(fits))
+        updates, every = int(cfg.planning_updates), int(cfg.world_model.refit_every)
+        planning_end = min(total, random_end + updates * batch)
+        fits += [
+            random_end + k * batch
+            for k in range(every, updates, every)
+            if random_end + k * batch < total
+        ]
+        segments = (
+            (Actor.RANDOM, 0, random_end),
+            (Actor.PLANNER, random_end, planning_end),
+            (Actor.AGENT, planning_end, total),
+        )
+        return cls(total, tuple(s for s in segments if s[2] > s[1]), tuple(fits))
+
+    def steps_left(self, actor: Actor, real_steps: int) -> int:
+        """Real steps ``actor`` still takes after ``real_steps``."""
+        return sum(
+            max(0, end - max(start, real_steps)) for a, start, end in self.segments if a is actor
+        )
+
+    def fits_left(self, real_steps: int) -> tuple[int, ...]:
+        """The fits still to come once ``real_steps`` steps are collected (not yet learnt from).
+
+        A fit at ``p`` transitions follows the batch that ends at ``p``: it is still due when
+        that batch has just been collected.
+        """
+        return tuple(p for p in self.fits if p >= real_steps)
+
+
+@dataclass
+class PhaseETA:
+    """Remaining time of a :class:`RunPlan` from measured per-actor and per-fit rates.
+
+    Feed it each batch's wall time without model fits (:meth:`observe_batch`), the agent's
+    update time (:meth:`observe_update`) and every fit (:meth:`observe_fit`);
+    :meth:`remaining` is ``None`` until every rate it needs is measured or can be estimated.
+
+    Args:
+        plan: the run's plan.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.progress import PhaseETA, RunPlan
+        >>> from torchrl_mbmf.trainers.schedule import Actor
+        >>> plan = RunPlan(100, ((Actor.RANDOM, 0, 20), (Actor.PLANNER, 20, 100)), (20, 60))
+        >>> eta = PhaseETA(plan)
+        >>> eta.observe_batch(Actor.RANDOM, 20, 0.2)
+        >>> eta.remaining(20) is None  # no planned step and no fit measured yet
+        True
+        >>> eta.observe_fit(20, 2.0)
+        >>> eta.observe_batch(Actor.PLANNER, 10, 1.0)
+        >>> eta.remaining(30)  # 70 planned steps at 0.1 s, a fit of 60 transitions at 0.1 s
+        13.0
+    """
+
+    plan: RunPlan
+    # the measurements so far: per actor, the agent's updates, the model fits
+    seconds: dict[Actor, float] = field(default_factory=dict, init=False)
+    steps: dict[Actor, int] = field(default_factory=dict, init=False)
+    update_seconds: float = field(default=0.0, init=False)
+    update_steps: int = field(default=0, init=False)
+    fit_seconds: float = field(default=0.0, init=False)
+    fit_transitions: int = field(default=0, init=False)
+
+    def observe_batch(self, actor: Actor, steps: int, seconds: float) -> None:
+        """Counts ``steps`` real steps by ``actor`` that took ``seconds`` (fits excluded)."""
+        if steps < 0 or seconds < 0:
+            raise ValueError(f"steps and seconds must be >= 0, got {steps} and {seconds}")
+        self.seconds[actor] = self.seconds.get(actor, 0.0) + seconds
+        self.steps[actor] = self.steps.get(actor, 0) + steps
+
+    def observe_update(self, steps: int, seconds: float) -> None:
+        """Counts the agent's update on a batch of ``steps`` real steps that took ``seconds``."""
+        self.update_steps += steps
+        self.update_seconds += seconds
+
+    def observe_fit(self, transitions: int, seconds: float) -> None:
+        """Counts a world-model fit on ``transitions`` real transitions that took ``seconds``."""
+        self.fit_transitions += transitions
+        self.fit_seconds += seconds
+
+    def step_seconds(self, actor: Actor) -> float | None:
+        """Seconds per real step of ``actor``: measured, else estimated, else ``None``.
+
+        The agent's steps before any is measured: a random step (the env) plus the agent's
+        update per step measured while planning.
+        """
+        if self.steps.get(actor, 0) > 0:
+            return self.seconds[actor] / self.steps[actor]
+        if actor is Actor.AGENT and self.steps.get(Actor.RANDOM, 0) > 0 and self.update_steps:
+            random = self.seconds[Actor.RANDOM] / self.steps[Actor.RANDOM]
+            return random + self.update_seconds / self.update_steps
+        return None
+
+    def remaining(self, real_steps: int) -> float | None:
+        """Seconds left once ``real_steps`` steps are collected, or ``None`` if not known yet."""
+        total = 0.0
+        for actor in Actor:
+            left = self.plan.steps_left(actor, real_steps)
+            if left == 0:
+                continue
+            rate = self.step_seconds(actor)
+            if rate is None:
+                return None
+            total += left * rate
+        fits = self.plan.fits_left(real_steps)
+        if fits:
+            if self.fit_transitions == 0:
+                return None
+            total += sum(fits) * self.fit_seconds / self.fit_transitions
+        return total
+
+
+class TrainerETA:
+    """Feeds a :class:`PhaseETA` from a trainer's ``collected`` stage; returns the bar's text.
+
+    Between two ``collected`` calls the wall time goes to the actor that collected the batch,
+    minus the world-model fits in between (``trainer.times["refit_s"]``, each a fit on the
+    real transitions collected before it); the agent's update time is read from
+    ``trainer.times["update_s"]``.
+
+    Args:
+        plan: the run's plan.
+        clock: the time source (seconds). Defaults to :func:`time.perf_counter`.
+        start: when the run's first batch started (by ``clock``). Defaults to now.
+
+    Examples:
+        >>> from types import SimpleNamespace
+        >>> from tensordict import TensorDict
+        >>> from torchrl_mbmf.trainers.progress import RunPlan, TrainerETA
+        >>> from torchrl_mbmf.trainers.schedule import Actor
+        >>> clock = iter([0.0, 10.0]).__next__
+        >>> tracker = TrainerETA(RunPlan(40, ((Actor.AGENT, 0, 40),)), clock=clock)
+        >>> trainer = SimpleNamespace(acting=Actor.AGENT, progress={"real_steps": 10},
+        ...                           times={"refit_s": 0.0, "update_s": 0.0})
+        >>> tracker(trainer, TensorDict(batch_size=[10]))
+        'ETA 0:00:30'
+    """
+
+    def __init__(
+        self,
+        plan: RunPlan,
+        clock: Callable[[], float] = time.perf_counter,
+        start: float | None = None,
+    ) -> None:
+        self.eta, self.clock = PhaseETA(plan), clock
+        self.last_time = clock() if start is None else start
+        self.last_batch: int | None = None  # steps of the previous batch (None: first call)
+        self.last_refit = self.last_update = 0.0
+
+    def __call__(self, trainer: Any, batch: TensorDictBase) -> str:
+        """Counts the batch just collected; returns ``"ETA h:mm:ss"``."""
+        now, steps, size = self.clock(), int(trainer.progress["real_steps"]), batch.numel()
+        refit = float(trainer.times["refit_s"]) - self.last_refit
+        update = float(trainer.times["update_s"]) - self.last_update
+        if refit > 0:  # fits on the transitions collected before this batch
+            self.eta.observe_fit(steps - size, refit)
+        if update > 0 and self.last_batch is not None:  # the previous batch's update
+            self.eta.observe_update(self.last_batch, update)
+        # A resumed run's first batch also carries the start-up: it is not measured.
+        if self.last_batch is not None or steps == size:
+            self.eta.observe_batch(trainer.acting, size, max(0.0, now - self.last_time - refit))
+        self.last_time, self.last_batch = now, size
+        self.last_refit, self.last_update = self.last_refit + refit, self.last_update + update
+        return f"ETA {format_seconds(self.eta.remaining(steps))}"
+
+
+def end_of_run_message(summary: dict[str, Any], run_dir: str | Path) -> str:
+    """What a finished run prints: its folder, the summary's headline numbers, what to run next.
+
+    Args:
+        summary: the run's summary (``summary.json``).
+        run_dir: the run folder.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.progress import end_of_run_message
+        >>> summary = {"method": "ppo", "env": "Pendulum-v1", "reward": "default", "seed": 0,
+        ...     "real_steps": 4000, "last10_mean_return": -1200.5, "final_eval_return": None,
+        ...     "seconds": 61.0}
+        >>> print(end_of_run_message(summary, "outputs/short/run"))
+        Run finished: outputs/short/run
+          ppo on Pendulum-v1, reward default, seed 0: 4,000 real steps in 0:01:01
+          last-10 mean return -1200.5, final evaluation return n/a
+        Analyse:  python recipes/analyze.py runs=[outputs/short] out_dir=outputs/short/analysis
+        Video:    python recipes/record.py run_dir=outputs/short/run
+    """
+    run_dir = Path(run_dir)
+
+    def number(key: str) -> str:
+        value = summary.get(key)
+        return "n/a" if value is None else f"{float(value):.1f}"
+
+    head = (
+        f"{summary.get('method')} on {summary.get('env')}, reward {summary.get('reward')}, "
+        f"seed {summary.get('seed')}: {int(summary.get('real_steps', 0)):,} real steps in "
+        f"{format_seconds(summary.get('seconds'))}"
+    )
+    parent = run_dir.parent.as_posix()
+    return "\n".join(
+        [
+            f"Run finished: {run_dir.as_posix()}",
+            f"  {head}",
+            f"  last-10 mean return {number('last10_mean_return')}, "
+            f"final evaluation return {number('final_eval_return')}",
+            f"Analyse:  python recipes/analyze.py runs=[{parent}] out_dir={parent}/analysis",
+            f"Video:    python recipes/record.py run_dir={run_dir.as_posix()}",
+        ]
+    )
