@@ -17,13 +17,14 @@ import hydra
 from omegaconf import DictConfig
 
 from torchrl_mbmf.analysis.experiments import analyze_experiments
-from torchrl_mbmf.checks import check_number, check_output_path
+from torchrl_mbmf.checks import check_number, check_output_path, check_recipe_overrides
 
 log = logging.getLogger("analyze")
 
 
 @hydra.main(config_path="../configs", config_name="analyze", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    check_recipe_overrides(cfg)  # a +key=... typo is refused, not ignored
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     # Settings checked before any work.
     out_dir = check_output_path(cfg.out_dir, "out_dir", folder=True)

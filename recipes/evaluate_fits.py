@@ -20,6 +20,7 @@ import yaml
 from omegaconf import DictConfig
 
 from torchrl_mbmf.analysis.horizon import snapshot_open_loop_errors
+from torchrl_mbmf.checks import check_recipe_overrides
 from torchrl_mbmf.data import collect_random_transitions
 from torchrl_mbmf.envs import make_env
 from torchrl_mbmf.runs.layout import FIT_ERRORS, RunFolder
@@ -29,6 +30,7 @@ log = logging.getLogger("evaluate_fits")
 
 @hydra.main(config_path="../configs", config_name="evaluate_fits", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    check_recipe_overrides(cfg)  # a +key=... typo is refused, not ignored
     run_dir = Path(cfg.run_dir)
     config_path = run_dir / "config.yaml"
     if not config_path.exists():

@@ -15,12 +15,14 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from torchrl_mbmf.analysis.world_model_job import run_fit_world_model
+from torchrl_mbmf.checks import check_recipe_overrides
 
 log = logging.getLogger("fit_world_model")
 
 
 @hydra.main(config_path="../configs", config_name="fit_world_model", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    check_recipe_overrides(cfg)  # a +key=... typo is refused, not ignored
     # torchrl logs each replay storage's creation at INFO on stdout; keep the output readable.
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     out_dir = Path(HydraConfig.get().runtime.output_dir)

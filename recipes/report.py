@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 
 import torchrl_mbmf
 from torchrl_mbmf.analysis.report import write_report
-from torchrl_mbmf.checks import check_input_file, check_output_path
+from torchrl_mbmf.checks import check_input_file, check_output_path, check_recipe_overrides
 
 log = logging.getLogger("report")
 
@@ -36,6 +36,7 @@ def _commit() -> str:
 
 @hydra.main(config_path="../configs", config_name="report", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    check_recipe_overrides(cfg)  # a +key=... typo is refused, not ignored
     # Every input and the output are checked before any work.
     analyses = {Path(p).name: p for p in cfg.analyses}
     missing = [p for p in cfg.analyses if not (Path(p) / "analysis.json").exists()]

@@ -32,6 +32,7 @@ from torchrl_mbmf.baselines.sb3 import (
     make_sb3_model,
     sb3_grad_steps,
 )
+from torchrl_mbmf.checks import check_recipe_overrides
 from torchrl_mbmf.runs.layout import write_run_record
 
 log = logging.getLogger("sb3_reference")
@@ -59,6 +60,7 @@ def _check(cfg: DictConfig, run_dir: Path) -> int:
 
 @hydra.main(config_path="../configs", config_name="sb3_reference", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    check_recipe_overrides(cfg)  # a +key=... typo is refused, not ignored
     run_dir = Path(cfg.run_dir)
     steps = _check(cfg, run_dir)
     for stale in ("logs", "summary.json"):

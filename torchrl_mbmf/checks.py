@@ -6,6 +6,7 @@ input files, output paths); an error names the key, what was expected and the va
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -23,8 +24,10 @@ __all__ = [
     "check_input_file",
     "check_multi_step",
     "check_multi_step_weight",
+    "check_no_added_keys",
     "check_number",
     "check_output_path",
+    "check_recipe_overrides",
     "choice",
     "settings",
 ]
@@ -356,3 +359,74 @@ def check_output_path(path: str | os.PathLike, key: str, *, folder: bool) -> Pat
             f"{key}={str(path)!r} cannot be written: {str(ancestor)!r} is not a writable folder"
         )
     return out
+
+
+def _leaf_keys(cfg: Mapping[str, Any], prefix: str = "") -> list[str]:
+    keys = []
+    for key, value in cfg.items():
+        name = f"{prefix}{key}"
+        keys.append(name)
+        if isinstance(value, Mapping):
+            keys += _leaf_keys(value, prefix=f"{name}.")
+    return keys
+
+
+def check_no_added_keys(
+    overrides: Sequence[str], known: Mapping[str, Any], *, groups: Sequence[str] = ()
+) -> None:
+    """Refuses command-line overrides that add a setting the recipe does not have (``+key=...``).
+
+    Hydra refuses ``key=value`` for a key its config lacks, but ``+key=value`` adds it, and a
+    recipe would then ignore it silently (a typo such as ``+world_model.hiden_sizes=[8]``).
+
+    Args:
+        overrides: the command-line overrides (Hydra's ``HydraConfig.get().overrides.task``).
+        known: the recipe's composed config as plain containers (its keys are the settings).
+
+    Keyword Args:
+        groups: config groups that may be added with ``+group=option``. Defaults to none.
+
+    Raises:
+        ValueError: naming the added key and the closest known setting.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import check_no_added_keys
+        >>> known = {"eval_starts": 2000, "world_model": {"hidden_sizes": [500, 500]}}
+        >>> try:
+        ...     check_no_added_keys(["+world_model.hiden_sizes=[8]"], known)
+        ... except ValueError as err:
+        ...     print(str(err).split("; ")[1])
+        did you mean 'world_model.hidden_sizes'?
+    """
+    names = _leaf_keys(known)
+    for override in overrides:
+        if not override.startswith("+") or override.startswith("++"):
+            continue
+        key = override[1:].split("=", 1)[0].strip()
+        if key in groups:
+            continue
+        # The composed config holds the added key; a key is known if it is not only there.
+        others = [n for n in names if n != key and not n.startswith(f"{key}.")]
+        close = difflib.get_close_matches(key, others, n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]!r}?" if close else f"known: {sorted(others)[:20]}"
+        raise ValueError(f"unknown setting {key!r} (added with +); {hint}")
+
+
+def check_recipe_overrides(cfg: Any) -> None:
+    """In a ``@hydra.main`` recipe: refuses ``+key=...`` overrides of unknown settings.
+
+    :func:`check_no_added_keys` over the running job's command-line overrides.
+
+    Args:
+        cfg: the recipe's config (a ``DictConfig``).
+
+    Examples:
+        >>> from torchrl_mbmf.checks import check_recipe_overrides
+        >>> check_recipe_overrides  # doctest: +ELLIPSIS
+        <function check_recipe_overrides at ...>
+    """
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    known = OmegaConf.to_container(cfg, resolve=False)
+    check_no_added_keys(list(HydraConfig.get().overrides.task), known)  # type: ignore[arg-type]

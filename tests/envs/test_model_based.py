@@ -100,12 +100,24 @@ def test_predict_matches_step(cheetah, model):
     torch.testing.assert_close(env.observation(nxt), nxt[..., 1:])
 
 
-def test_reset_without_state_starts_at_zero(cheetah, model):
-    env = LearnedDynamicsEnv(model, cheetah)
+def test_reset_without_state_starts_from_real_initial_states(model):
+    real = make_half_cheetah_env(seed=3)
+    env = LearnedDynamicsEnv(model, real)
     td = env.reset()
-    assert (td[STATE_KEY] == 0).all()
+    # HalfCheetah's initial state: qpos noise U(-0.1, 0.1), qvel noise 0.1 N(0, 1): never zero
+    assert td[STATE_KEY].shape == (18,) and bool((td[STATE_KEY] != 0).any())
+    assert float(td[STATE_KEY][:9].abs().max()) <= 0.1
     td = env.reset(TensorDict(batch_size=[4]))
     assert td[STATE_KEY].shape == (4, 18)
+    assert len({tuple(s.tolist()) for s in td[STATE_KEY]}) == 4  # four different resets
+    # the same initial states as the real env's own resets under the same seed
+    real.set_seed(7)
+    first = env.reset(TensorDict(batch_size=[2]))[STATE_KEY]
+    real.set_seed(7)
+    torch.testing.assert_close(first[0], real.reset()[STATE_KEY])
+    torch.testing.assert_close(first[1], real.reset()[STATE_KEY])
+    rollout = env.rollout(3)
+    assert not bool((rollout[STATE_KEY][0] == 0).all())
 
 
 def test_pendulum_without_dropped_dims():
@@ -128,3 +140,136 @@ def test_errors_name_the_mismatch(cheetah, model):
     env = LearnedDynamicsEnv(model, cheetah)
     with pytest.raises(ValueError, match="last dim 5"):
         env.reset(TensorDict(state=torch.zeros(2, 5), batch_size=[2]))
+
+
+def _standing_still(state_dim: int, action_dim: int) -> DeltaDynamicsModel:
+    """A model whose every prediction is ``s' = s`` with reward 0."""
+    model = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=(8,))
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.zero_()
+    return model
+
+
+@pytest.fixture(scope="module")
+def hopper():
+    return make_gym_state_env("Hopper-v5", seed=0, exclude_current_positions_from_observation=False)
+
+
+def test_hopper_terminations_follow_the_task_rule(hopper):
+    env = LearnedDynamicsEnv(_standing_still(12, 3), hopper)
+    check_env_specs(env)
+    start = hopper.reset().expand(3).clone()
+    start[STATE_KEY][:, 1] = torch.tensor([1.25, 0.5, 1.25])  # height: fine, fallen, fine
+    start[STATE_KEY][2, 2] = 0.3  # torso angle beyond 0.2
+    start[OBSERVATION_KEY] = env.observation(start[STATE_KEY])
+    td = env.step(env.reset(start).set("action", torch.zeros(3, 3)))
+    expected = torch.tensor([[False], [True], [True]])
+    assert torch.equal(td["next", "terminated"], expected)
+    assert torch.equal(td["next", "done"], expected)
+    assert not env.never_terminates
+
+
+def test_termination_fn_argument_and_its_checks(cheetah, model):
+    assert LearnedDynamicsEnv(model, cheetah).never_terminates
+    env = LearnedDynamicsEnv(
+        _standing_still(18, 6), cheetah, termination_fn=lambda s: s[..., 0] > 1.0
+    )
+    start = cheetah.reset().expand(2).clone()
+    start[STATE_KEY][:, 0] = torch.tensor([0.0, 2.0])
+    td = env.step(env.reset(start).set("action", torch.zeros(2, 6)))
+    assert td["next", "terminated"][:, 0].tolist() == [False, True]
+    with pytest.raises(ValueError, match="bool tensor"):
+        LearnedDynamicsEnv(model, cheetah, termination_fn=lambda s: s[..., 0])
+    with pytest.raises(TypeError, match="termination_fn"):
+        LearnedDynamicsEnv(model, cheetah, termination_fn=3)
+
+
+def test_action_bounds_come_from_the_env():
+    pendulum = make_gym_state_env("Pendulum-v1", seed=0)  # actions in [-2, 2]
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+    assert model.action_bounds is None  # no clip of its own by default
+    s = torch.zeros(1, 3)
+    # without bounds the model tells 2.0 from 1.0
+    assert not torch.equal(model(s, torch.full((1, 1), 2.0))[0], model(s, torch.ones(1, 1))[0])
+    LearnedDynamicsEnv(model, pendulum)
+    assert model.action_bounds == (-2.0, 2.0)  # adopted from the spec
+    torch.testing.assert_close(model(s, torch.full((1, 1), 5.0)), model(s, torch.full((1, 1), 2.0)))
+    LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, action_low=-2.0, action_high=2.0), pendulum)
+    with pytest.raises(ValueError, match=r"\[-1.0, 1.0\].*'action' spec is \[-2.0, 2.0\]"):
+        LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, action_low=-1.0, action_high=1.0), pendulum)
+    inverted = make_gym_state_env("InvertedPendulum-v5", seed=0)  # actions in [-3, 3]
+    model = DeltaDynamicsModel(4, 1, hidden_sizes=(8,))
+    LearnedDynamicsEnv(model, inverted)
+    assert model.action_bounds == (-3.0, 3.0)
+
+
+def test_plain_gym_env_any_keys():
+    from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
+
+    from torchrl_mbmf.modules import PolicyGuidedMPCPlanner, make_ppo_actor_critic
+
+    real = GymEnv("Pendulum-v1")  # one "observation" entry: the state is what the policy reads
+    env = LearnedDynamicsEnv(
+        DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real, state_key="observation"
+    )
+    assert env.observation_key is None
+    check_env_specs(env)
+    actor, _ = make_ppo_actor_critic(real, hidden_sizes=(8,))
+    planner = PolicyGuidedMPCPlanner(env, actor, num_candidates=4, horizon=3)
+    td = real.rollout(3, planner)
+    assert td["action"].shape == (3, 1) and bool((td["action"].abs() <= 2).all())
+    # a float64 env is refused with the transform that fixes it
+    hopper = GymEnv("Hopper-v5", exclude_current_positions_from_observation=False)
+    with pytest.raises(TypeError, match="DoubleToFloat"):
+        LearnedDynamicsEnv(DeltaDynamicsModel(12, 3), hopper, state_key="observation")
+    hopper = TransformedEnv(hopper, DoubleToFloat())
+    env = LearnedDynamicsEnv(
+        DeltaDynamicsModel(12, 3, hidden_sizes=(8,)),
+        hopper,
+        state_key="observation",
+        observation_key=None,
+    )
+    check_env_specs(env)
+    assert not env.never_terminates  # Hopper's rule found through the transform
+    renamed = make_gym_state_env("Pendulum-v1", state_key="s", observation_key="obs")
+    env = LearnedDynamicsEnv(
+        DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), renamed, state_key="s", observation_key="obs"
+    )
+    check_env_specs(env)
+    assert set(env.observation_spec.keys()) == {"s", "obs"}
+
+
+def test_fit_and_dataset_read_the_same_state_key():
+    from torchrl.envs import GymEnv
+
+    from torchrl_mbmf.data import collect_random_transitions
+    from torchrl_mbmf.world_model import fit_dynamics
+
+    real = GymEnv("Pendulum-v1")
+    data = collect_random_transitions(real, 300, seed=0, state_key="observation")
+    assert data.state_key == "observation"
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(16,))
+    LearnedDynamicsEnv(model, real, state_key="observation")  # adopts [-2, 2] before the fit
+    history = fit_dynamics(model, data, batch_size=64, max_epochs=2, seed=0)
+    assert len(history.val_loss) == 2
+    with pytest.raises(ValueError, match="state_key='state' but the dataset stores 'observation'"):
+        fit_dynamics(model, data, max_epochs=1, state_key="state")
+    # a TensorDict of transitions under other keys: the same fit as under the default ones
+    td = data.tensors().clone()
+    renamed = td.clone()
+    renamed.rename_key_("observation", "obs")
+    renamed.rename_key_(("next", "observation"), ("next", "obs"))
+    td.rename_key_("observation", "state")
+    td.rename_key_(("next", "observation"), ("next", "state"))
+    fits = []
+    for transitions, key in ((td, None), (renamed, "obs")):
+        torch.manual_seed(0)
+        m = DeltaDynamicsModel(3, 1, hidden_sizes=(16,), action_low=-2.0, action_high=2.0)
+        fits.append(
+            fit_dynamics(m, transitions, max_epochs=2, batch_size=64, seed=0, state_key=key)
+        )
+    assert fits[0].val_loss == fits[1].val_loss
+    assert "state" not in set(renamed.keys())  # the caller's data is left as it was
+    with pytest.raises(KeyError, match=r"no .*nope.* entry"):
+        fit_dynamics(m, renamed, max_epochs=1, state_key="nope")

@@ -47,7 +47,7 @@ def test_normalizer_statistics_and_targets():
 
 def test_forward_adds_delta_and_clips_actions():
     state, action, next_state, reward = _data()
-    model = DeltaDynamicsModel(5, 2, hidden_sizes=(8,))
+    model = DeltaDynamicsModel(5, 2, hidden_sizes=(8,), action_low=-1.0, action_high=1.0)
     model.fit_normalizer(state, action, next_state, reward)
     s = state[:3]
     out_clip, r_clip = model(s, torch.full((3, 2), 1.0))

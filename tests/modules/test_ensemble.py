@@ -76,7 +76,9 @@ def _per_member_mlp(model, k):
 # ----------------------------------------------------------------------------- the model
 def test_batched_members_equal_a_loop_of_single_mlps():
     state, action, next_state, reward = _data()
-    model = EnsembleDeltaDynamicsModel(5, 2, num_members=4, hidden_sizes=(16, 8))
+    model = EnsembleDeltaDynamicsModel(
+        5, 2, num_members=4, hidden_sizes=(16, 8), action_low=-1.0, action_high=1.0
+    )
     model.fit_normalizer(state, action, next_state, reward)
     s, a = state[:6].reshape(2, 3, 5), action[:6].reshape(2, 3, 2) * 1.5  # some clipped
     next_members, reward_members = model.forward_members(s, a)

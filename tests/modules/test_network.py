@@ -95,8 +95,8 @@ def test_layouts_are_those_saved_before():
         "state_dim": 18,
         "action_dim": 6,
         "hidden_sizes": [500, 500],
-        "action_low": -1.0,
-        "action_high": 1.0,
+        "action_low": -float("inf"),  # no clip until a learned env gives it its action spec
+        "action_high": float("inf"),
     }
     ensemble = DeltaDynamicsModel(18, 6, ensemble_size=5, hidden_sizes=(8,))
     assert ensemble.config == {
@@ -107,6 +107,8 @@ def test_layouts_are_those_saved_before():
         "min_log_var": -10.0,
         "max_log_var": 0.5,
     }
+    thesis.set_action_bounds(-1.0, 1.0)  # what HalfCheetah's learned env sets
+    assert (thesis.config["action_low"], thesis.config["action_high"]) == (-1.0, 1.0)
 
 
 def _recorded(ensemble_class: bool):
@@ -145,7 +147,7 @@ def test_seeded_weights_and_outputs_are_those_recorded_before(ensemble_class):
 def test_k1_is_the_plain_thesis_mlp():
     """Seed, draw order and forward of the thesis model, rebuilt from stock torch layers."""
     torch.manual_seed(3)
-    model = DeltaDynamicsModel(5, 2, hidden_sizes=(16, 16))
+    model = DeltaDynamicsModel(5, 2, hidden_sizes=(16, 16), action_low=-1.0, action_high=1.0)
     torch.manual_seed(3)
     ref = nn.Sequential(nn.Linear(7, 16), nn.ReLU(), nn.Linear(16, 16), nn.ReLU(), nn.Linear(16, 6))
     for name, value in ref.state_dict().items():

@@ -425,3 +425,44 @@ def test_cached_model_step_sees_a_replaced_parameter():
         model.net[0].weight = nn.Parameter(torch.randn(8, 4))
         assert step() is not first
         torch.testing.assert_close(step()(s, a)[0], model(s, a)[0], rtol=1e-5, atol=1e-5)
+
+
+def test_planner_writes_the_actors_log_prob_key_for_stock_ppo():
+    from tensordict.nn import NormalParamExtractor
+    from torchrl.objectives import ClipPPOLoss
+    from torchrl.objectives.value import GAE
+
+    real = make_gym_state_env("Pendulum-v1", seed=0)
+    torch.manual_seed(0)
+    net = TensorDictModule(
+        nn.Sequential(nn.Linear(3, 16), nn.Tanh(), nn.Linear(16, 2), NormalParamExtractor()),
+        in_keys=["observation"],
+        out_keys=["loc", "scale"],
+    )
+    actor = ProbabilisticActor(
+        net,
+        in_keys=["loc", "scale"],
+        spec=real.action_spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": -2.0, "high": 2.0},
+        return_log_prob=True,
+        log_prob_key="sample_log_prob",
+    )
+    critic = ValueOperator(nn.Linear(3, 1), in_keys=["observation"])
+    model_env = LearnedDynamicsEnv(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real)
+    planner = PolicyGuidedMPCPlanner(model_env, actor, num_candidates=4, horizon=2)
+    assert planner.log_prob_key == "sample_log_prob"
+    assert RandomShootingMPCPlanner(model_env).log_prob_key == "action_log_prob"
+    assert PolicyGuidedMPCPlanner(model_env, actor, log_prob_key="lp").log_prob_key == "lp"
+    batch = real.rollout(6, planner)
+    keys = set(batch.keys())
+    assert "sample_log_prob" in keys and "action_log_prob" not in keys
+    # the written log-prob is the actor's own at the real state
+    dist = actor.get_dist(batch.select("observation").clone())
+    torch.testing.assert_close(
+        batch["sample_log_prob"], dist.log_prob(batch["action"]), atol=1e-4, rtol=1e-4
+    )
+    loss = ClipPPOLoss(actor, critic)
+    GAE(gamma=0.99, lmbda=0.95, value_network=critic)(batch)
+    losses = loss(batch)  # reads "sample_log_prob": no KeyError
+    assert torch.isfinite(losses["loss_objective"])

@@ -143,6 +143,11 @@ FITS: dict[str, tuple[str, float]] = {
 }
 
 
+#: HalfCheetah's action space: the models here see actions in [-1.1, 1.1] before any learned
+#: env gives them its spec, so they are built with the env's bounds, as the recipes build them.
+CHEETAH_BOUNDS = {"action_low": -1.0, "action_high": 1.0}
+
+
 def sha(*tensors: torch.Tensor) -> str:
     """SHA-256 of the tensors' bytes, in order."""
     h = hashlib.sha256()
@@ -230,14 +235,16 @@ def _fitted_scaling(model: DeltaDynamicsModel) -> DeltaDynamicsModel:
 def single(real):
     torch.manual_seed(2)
     return LearnedDynamicsEnv(
-        _fitted_scaling(DeltaDynamicsModel(18, 6, hidden_sizes=(32, 32))), real
+        _fitted_scaling(DeltaDynamicsModel(18, 6, hidden_sizes=(32, 32), **CHEETAH_BOUNDS)), real
     )
 
 
 @pytest.fixture(scope="module")
 def ensemble():
     torch.manual_seed(3)
-    return _fitted_scaling(EnsembleDeltaDynamicsModel(18, 6, num_members=3, hidden_sizes=(32, 32)))
+    return _fitted_scaling(
+        EnsembleDeltaDynamicsModel(18, 6, num_members=3, hidden_sizes=(32, 32), **CHEETAH_BOUNDS)
+    )
 
 
 def real_states(real) -> TensorDict:
@@ -340,7 +347,7 @@ def fit_record(name: str) -> tuple[str, float]:
     losses: list[float] = []
     if name.startswith("fit_dynamics"):
         torch.manual_seed(7)
-        model = DeltaDynamicsModel(18, 6, hidden_sizes=(24, 16))
+        model = DeltaDynamicsModel(18, 6, hidden_sizes=(24, 16), **CHEETAH_BOUNDS)
         opt = torch.optim.Adam(model.parameters(), lr=3e-3)
         kwargs = {"multi_step": 1}
         if name == "fit_dynamics_multi_step":
@@ -362,7 +369,12 @@ def fit_record(name: str) -> tuple[str, float]:
     else:
         torch.manual_seed(8)
         model = EnsembleDeltaDynamicsModel(
-            18, 6, num_members=3, hidden_sizes=(24, 16), probabilistic=name.endswith("gaussian")
+            18,
+            6,
+            num_members=3,
+            hidden_sizes=(24, 16),
+            probabilistic=name.endswith("gaussian"),
+            **CHEETAH_BOUNDS,
         )
         opt = torch.optim.Adam(model.parameters(), lr=3e-3)
         for n, seed in ((300, 0), (500, 1)):

@@ -27,7 +27,7 @@ def _transitions(n=64, seed=0):
 
 def _model(data):
     torch.manual_seed(0)
-    model = DeltaDynamicsModel(4, 2, hidden_sizes=(16,))
+    model = DeltaDynamicsModel(4, 2, hidden_sizes=(16,), action_low=-1.0, action_high=1.0)
     model.fit_normalizer(
         data["state"], data["action"], data["next", "state"], data["next", "reward"]
     )

@@ -170,7 +170,7 @@ def test_k_step_loss_equals_a_hand_computed_rollout():
 
 def test_k_step_loss_equals_a_scaled_linear_rollout_by_hand():
     torch.manual_seed(1)
-    model = DeltaDynamicsModel(4, 2, hidden_sizes=())
+    model = DeltaDynamicsModel(4, 2, hidden_sizes=(), action_low=-1.0, action_high=1.0)
     _, windows = _transitions(k=3, seed=2)
     flat = windows.reshape(-1)
     model.fit_normalizer(

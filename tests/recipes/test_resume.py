@@ -317,11 +317,21 @@ def _signal_after_first_checkpoint(run_dir: Path, sig: signal.Signals, *override
     return proc.returncode, out + err
 
 
+SIGNAL_CFG = ["method=ppo", *TINY, "checkpoint.every_steps=320"]
+
+
+@pytest.fixture(scope="module")
+def straight_signal_run(tmp_path_factory):
+    straight = tmp_path_factory.mktemp("signal") / "straight"
+    assert _run(straight, *SIGNAL_CFG).returncode == 0
+    return json.loads((straight / "summary.json").read_text())
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_a_stop_signal_saves_and_the_rerun_ends_like_an_uninterrupted_run(tmp_path, sig):
-    cfg = ["method=ppo", *TINY, "checkpoint.every_steps=320"]
-    straight = tmp_path / "straight"
-    assert _run(straight, *cfg).returncode == 0
+def test_a_stop_signal_saves_and_the_rerun_ends_like_an_uninterrupted_run(
+    tmp_path, sig, straight_signal_run
+):
+    cfg = SIGNAL_CFG
     run = tmp_path / "stopped"
     code, output = _signal_after_first_checkpoint(run, sig, *cfg)
     assert code == 0, output[-3000:]
@@ -331,7 +341,7 @@ def test_a_stop_signal_saves_and_the_rerun_ends_like_an_uninterrupted_run(tmp_pa
     done = _run(run, *cfg)
     assert done.returncode == 0, done.stderr[-3000:]
     resumed = json.loads((run / "summary.json").read_text())
-    reference = json.loads((straight / "summary.json").read_text())
+    reference = straight_signal_run
     assert resumed["resumed"] is True
     for key in ("real_steps", "updates", "episodes", "params_sha256"):
         assert resumed[key] == reference[key], key

@@ -80,3 +80,23 @@ def test_a_garbage_record_is_named(run):
     (run / POLICY_RECORD).write_text("{oops")
     with pytest.raises(CorruptPolicyError, match=r"policy\.json is not valid JSON"):
         read_policy_state(run)
+
+
+def test_run_folder_names_damaged_files_and_skips_garbage_rows(tmp_path, caplog):
+    from torchrl_mbmf.runs.layout import RunFolder
+
+    run = RunFolder(tmp_path)
+    run.write_record({"seed": 0})
+    (tmp_path / "summary.json").write_text("{garbage")
+    with pytest.raises(ValueError, match=r"summary\.json' is not valid JSON"):
+        run.read_summary()
+    (tmp_path / "config.yaml").write_text("a: [unclosed")
+    with pytest.raises(ValueError, match=r"config\.yaml' is not valid YAML"):
+        run.read_config()
+    csv = run.scalar_file("train/episode_return")
+    csv.parent.mkdir(parents=True)
+    csv.write_text("100,1.5\n200,nan\nabc,2\n300,inf\n400\n500,2.5\n")
+    with caplog.at_level(logging.WARNING):
+        steps, values = run.read_scalar("train/episode_return")
+    assert steps.tolist() == [100, 500] and values.tolist() == [1.5, 2.5]
+    assert "left out 4 row(s)" in caplog.text and "[2, 3, 4, 5]" in caplog.text

@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from torchrl_mbmf.analysis.horizon import horizon_predictions, horizon_table
-from torchrl_mbmf.checks import check_multi_step
+from torchrl_mbmf.checks import check_multi_step, check_number
 from torchrl_mbmf.data.transitions import TransitionDataset, collect_random_transitions
 from torchrl_mbmf.envs.factory import env_metadata, make_env
 from torchrl_mbmf.envs.keys import STATE_KEY
@@ -199,6 +199,10 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
         raise ValueError(f"horizons must all be >= 1, got {horizons}")
     if int(wm.random_steps) < 1:
         raise ValueError(f"world_model.random_steps must be >= 1, got {wm.random_steps}")
+    check_number(cfg.eval_steps, "eval_steps", minimum=1, integer=True)
+    check_number(cfg.plot_rollouts, "plot_rollouts", minimum=0, integer=True)
+    if cfg.eval_starts is not None:
+        check_number(cfg.eval_starts, "eval_starts", minimum=1, integer=True, note=" or null")
     fit_kwargs = fit_dynamics_kwargs(wm)
     compare = cfg.get("compare_multi_step")
     if compare is not None:

@@ -679,6 +679,7 @@ def collect_random_transitions(
     seed: int | None = None,
     progress: bool = False,
     chunk: int = 1000,
+    state_key: NestedKey = STATE_KEY,
 ) -> TransitionDataset:
     """Runs a uniform-random policy in the real env and stores its transitions.
 
@@ -695,6 +696,8 @@ def collect_random_transitions(
         seed: seeds the env and the action sampling. Defaults to ``None``.
         progress: show a tqdm bar. Defaults to ``False``.
         chunk: steps per env between two appends to the dataset. Defaults to ``1000``.
+        state_key: the env's state key, that of a new dataset. Defaults to
+            :data:`~torchrl_mbmf.envs.STATE_KEY` (``"observation"`` for a plain ``GymEnv``).
 
     Returns:
         The dataset.
@@ -709,7 +712,7 @@ def collect_random_transitions(
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
     if dataset is None:
-        dataset = TransitionDataset({**env_metadata(env), "seed": seed})
+        dataset = TransitionDataset({**env_metadata(env), "seed": seed}, state_key=state_key)
     n_envs = max(1, env.batch_size.numel())
     steps_per_env = -(-num_steps // n_envs)
     generator = torch.Generator()

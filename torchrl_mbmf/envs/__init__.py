@@ -13,6 +13,11 @@ from torchrl_mbmf.envs.keys import (
 )
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.envs.physics_info import PhysicsInfo
+from torchrl_mbmf.envs.terminations import (
+    TerminationFn,
+    termination_rule,
+    termination_rule_of_env,
+)
 from torchrl_mbmf.envs.transforms import (
     REWARDS,
     DefaultReward,
@@ -39,9 +44,12 @@ __all__ = [
     "PhysicsInfo",
     "ShinPenReward",
     "StateToObservation",
+    "TerminationFn",
     "env_metadata",
     "make_env",
     "make_gym_state_env",
     "make_half_cheetah_env",
     "make_reward",
+    "termination_rule",
+    "termination_rule_of_env",
 ]

@@ -32,7 +32,7 @@ class EnsembleLearnedDynamicsEnv(LearnedDynamicsEnv):
         disagreement_key: key of the disagreement. Defaults to ``"disagreement"``.
         **kwargs: the other keyword arguments of :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv`
             (``batch_size``, ``state_key``, ``observation_key``, ``action_key``,
-            ``reward_key``, ``observation_fn``, ``device``).
+            ``reward_key``, ``observation_fn``, ``device``, ``termination_fn``).
 
     Examples:
         >>> import torch

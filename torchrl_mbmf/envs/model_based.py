@@ -2,17 +2,24 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Literal
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from torchrl_mbmf.envs.keys import OBSERVATION_KEY, STATE_KEY
+from torchrl_mbmf.envs.terminations import (
+    NeverTerminates,
+    TerminationFn,
+    TerminationRule,
+    termination_rule_of_env,
+)
 from torchrl_mbmf.envs.transforms.observation import StateToObservation
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 
@@ -40,15 +47,113 @@ def _unbounded_like(spec: TensorSpec) -> Unbounded:
     return Unbounded(shape=spec.shape, dtype=spec.dtype, device=spec.device)
 
 
+def _check_termination_fn(
+    fn: TerminationFn, state_dim: int, device: torch.device, dtype: torch.dtype
+) -> None:
+    """Calls ``fn`` on two zero states: it must return a bool tensor ``[2]``."""
+    if not callable(fn):
+        raise TypeError(f"termination_fn must be a callable on states or None, got {fn!r}")
+    if isinstance(fn, TerminationRule) and state_dim < fn.min_state_dim:
+        raise ValueError(
+            f"termination_fn {fn!r} reads states of at least {fn.min_state_dim} entries, the "
+            f"world model's state has {state_dim}"
+        )
+    with torch.no_grad():
+        out = fn(torch.zeros(2, state_dim, device=device, dtype=dtype))
+    if not isinstance(out, torch.Tensor) or out.dtype != torch.bool or out.shape != (2,):
+        got = (
+            f"{out.dtype} tensor of shape {tuple(out.shape)}"
+            if isinstance(out, torch.Tensor)
+            else type(out).__name__
+        )
+        raise ValueError(
+            "termination_fn must map states [..., state_dim] to a bool tensor [...]; on states "
+            f"of shape (2, {state_dim}) it returned a {got}"
+        )
+
+
+def _adopt_action_bounds(
+    model: DeltaDynamicsModel, spec: TensorSpec, action_key: NestedKey
+) -> None:
+    """Sets the model's action clip to the env's action spec, or refuses other bounds."""
+    if not isinstance(spec, Bounded):
+        return
+    low, high = spec.space.low.flatten(), spec.space.high.flatten()
+    uniform = bool((low == low[0]).all() and (high == high[0]).all())
+    env_bounds = f"[{low.tolist()}, {high.tolist()}]" if not uniform else None
+    if uniform:
+        env_bounds = f"[{float(low[0])}, {float(high[0])}]"
+    own = model.action_bounds
+    if own is None:
+        if uniform:  # per-dimension bounds: the model keeps no clip of its own
+            model.set_action_bounds(float(low[0]), float(high[0]))
+        return
+    same = uniform and all(
+        math.isclose(a, float(b), rel_tol=1e-6, abs_tol=1e-7)
+        for a, b in zip(own, (low[0], high[0]), strict=True)
+    )
+    if not same:
+        raise ValueError(
+            f"the world model clips actions to [{own[0]}, {own[1]}] but the real env's "
+            f"{action_key!r} spec is {env_bounds}: build the model with the env's bounds "
+            "(action_low/action_high), or with none (the learned env then adopts the spec)"
+        )
+
+
+class _RealStarts:
+    """Start states drawn from the real env's ``reset`` (shared, not copied, with the env)."""
+
+    def __init__(self, env: EnvBase | None, state_key: NestedKey) -> None:
+        self.env = env
+        self.state_key = state_key
+
+    def __deepcopy__(self, memo: dict) -> _RealStarts:
+        return self
+
+    def __getstate__(self) -> dict[str, object]:
+        return {"env": None, "state_key": self.state_key}
+
+    def __call__(self, n: int) -> torch.Tensor:
+        if self.env is None:
+            raise RuntimeError(
+                "this learned env has no real env to draw start states from (it was pickled); "
+                f"pass them: env.reset(TensorDict({{{self.state_key!r}: states}}, batch_size))"
+            )
+        states, count = [], 0
+        while count < n:
+            state = self.env.reset().get(self.state_key)
+            state = state.reshape(-1, state.shape[-1])
+            states.append(state)
+            count += state.shape[0]
+        return torch.cat(states)[:n]
+
+
 class LearnedDynamicsEnv(ModelBasedEnvBase):
     """A :class:`~torchrl_mbmf.modules.DeltaDynamicsModel` as a stateless TorchRL environment.
 
     Planning rolls candidate action sequences out in this env from real states: ``reset`` takes
     the state from the tensordict it is given (``state_key``), each ``step`` applies the world
     model to ``(state, action)`` and writes the predicted next state, its policy observation and
-    the predicted reward. The env never auto-resets and never reports ``done`` (HalfCheetah has
-    no terminal states), and accepts any batch shape (``batch_locked=False``), so ``[*B, m]``
-    candidates of ``[*B]`` real states roll out in one call.
+    the predicted reward. The env never auto-resets and accepts any batch shape
+    (``batch_locked=False``), so ``[*B, m]`` candidates of ``[*B]`` real states roll out in one
+    call.
+
+    **Terminations.** Each step sets ``terminated`` (and ``done``) from ``termination_fn``
+    applied to the predicted next state. By default it is the known rule of the real env's
+    Gymnasium task (:func:`~torchrl_mbmf.envs.termination_rule_of_env`: Gymnasium's health
+    conditions for Hopper, Walker2d, Ant, Humanoid, InvertedPendulum and
+    InvertedDoublePendulum; never for HalfCheetah, Pendulum and the other tasks without terminal
+    states; a warning and never for an unknown task). The planners stop each candidate's score
+    at its first terminal step.
+
+    **Action bounds.** The model's action clip is the env's action spec: a model built without
+    bounds (the default of :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`) adopts the
+    spec's (uniform) bounds, a model with other bounds is refused with both named.
+
+    **Start states.** ``reset`` with a tensordict holding ``state_key`` starts there; without
+    one (``env.rollout(n)``, ``check_env_specs``) it resets the real env given at construction
+    (ending that env's current episode) as many times as needed and starts from its initial
+    states, never from an arbitrary state.
 
     Specs are copied from the real env (unbatched): the state entry, the policy observation entry
     (when the real env has one, kept in sync through the real env's
@@ -79,7 +184,8 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         state_key: key of the model state. Defaults to :data:`~torchrl_mbmf.envs.STATE_KEY`.
         observation_key: key of the policy observation, or ``None`` if the policy reads the
             state itself. Defaults to :data:`~torchrl_mbmf.envs.OBSERVATION_KEY` (``None`` is
-            used automatically when the real env has no such entry).
+            used automatically when the real env has no such entry or when it is the state
+            key, as on a plain ``GymEnv`` with ``state_key="observation"``).
         action_key: action key. Defaults to ``"action"``.
         reward_key: reward key. Defaults to ``"reward"``.
         observation_fn: maps a state tensor to the policy observation. Defaults to the real
@@ -89,6 +195,8 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             to ``None``: the members' mean.
         disagreement_key: key of the members' disagreement (ensembles only), or ``None``.
             Defaults to ``None``.
+        termination_fn: ``fn(next_states [..., state_dim]) -> bool [...]``, the terminal
+            states. Defaults to ``None``: the known rule of the real env's task.
 
     Examples:
         >>> import torch
@@ -118,10 +226,16 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         device: torch.device | str | None = None,
         member_assignment: Literal["cycle", "mean"] | None = None,
         disagreement_key: NestedKey | None = None,
+        termination_fn: TerminationFn | None = None,
     ) -> None:
         if not isinstance(world_model, DeltaDynamicsModel):
             raise TypeError(
                 f"world_model must be a DeltaDynamicsModel, got {type(world_model).__name__}"
+            )
+        if not isinstance(env, EnvBase):
+            raise TypeError(
+                f"env must be the real TorchRL env (an EnvBase) whose specs and start states the "
+                f"learned env takes, got {type(env).__name__}"
             )
         if member_assignment is not None and member_assignment not in MEMBER_ASSIGNMENTS:
             raise ValueError(
@@ -150,6 +264,13 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
                 f"its entries are {sorted(map(str, obs_spec.keys(True, True)))}"
             )
         state_spec = obs_spec[state_key]
+        model_dtype = next(world_model.parameters()).dtype
+        if state_spec.dtype != model_dtype:
+            raise TypeError(
+                f"the real env's {state_key!r} is {state_spec.dtype}, the world model computes in "
+                f"{model_dtype}: add torchrl.envs.DoubleToFloat() to the real env (or build the "
+                "model in its dtype)"
+            )
         if state_spec.shape[-1:] != (world_model.state_dim,):
             raise ValueError(
                 f"the real env's {state_key!r} has shape {tuple(state_spec.shape)}, the world "
@@ -161,8 +282,18 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
                 f"the real env's {action_key!r} has shape {tuple(action_spec.shape)}, the world "
                 f"model expects action_dim={world_model.action_dim}"
             )
-        if observation_key is not None and observation_key not in obs_spec.keys(True):
-            observation_key = None
+        _adopt_action_bounds(world_model, action_spec, action_key)
+        if termination_fn is None:
+            termination_fn = termination_rule_of_env(env)
+        _check_termination_fn(
+            termination_fn, world_model.state_dim, torch.device(self.device), model_dtype
+        )
+        self.termination_fn = termination_fn
+        self._starts = _RealStarts(env, state_key)
+        if observation_key is not None and (
+            observation_key not in obs_spec.keys(True) or observation_key == state_key
+        ):
+            observation_key = None  # the policy reads the state itself
         self.observation_key = observation_key
         self._observation_fn: Callable[[torch.Tensor], torch.Tensor] | None = None
         # A learned model may predict outside the real env's observation bounds: unbounded specs.
@@ -191,7 +322,12 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
             shape=bs,
         )
-        if disagreement_key in (state_key, observation_key, action_key, reward_key):
+        if disagreement_key is not None and disagreement_key in (
+            state_key,
+            observation_key,
+            action_key,
+            reward_key,
+        ):
             raise ValueError(f"disagreement_key={disagreement_key!r} collides with another key")
         self.member_assignment = member_assignment
         self.disagreement_key = disagreement_key
@@ -241,13 +377,37 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
 
         return step
 
-    def _fill(self, state: torch.Tensor, batch_size: torch.Size) -> TensorDict:
+    def steps_as_its_model(self) -> bool:
+        """Whether a step is exactly :meth:`predict` then :meth:`terminated` (planners' fast path).
+
+        ``False`` for a subclass that overrides ``_step``, :meth:`predict` or the way it fills
+        the step's entries: the planners then roll out through ``env.rollout``.
+        """
+        cls = type(self)
+        base = LearnedDynamicsEnv
+        return all(
+            getattr(cls, name) is getattr(base, name) for name in ("_step", "predict", "_fill")
+        )
+
+    @property
+    def never_terminates(self) -> bool:
+        """Whether ``termination_fn`` is the rule of a task without terminal states."""
+        return isinstance(self.termination_fn, NeverTerminates)
+
+    def terminated(self, state: torch.Tensor) -> torch.Tensor:
+        """``termination_fn`` of the states ``[*B, state_dim]``: bool ``[*B]``."""
+        return self.termination_fn(state)
+
+    def _fill(
+        self, state: torch.Tensor, batch_size: torch.Size, terminated: torch.Tensor | None = None
+    ) -> TensorDict:
         out = TensorDict({self.state_key: state}, batch_size=batch_size, device=self.device)
         if self.observation_key is not None:
             out.set(self.observation_key, self.observation(state))
-        falses = torch.zeros((*batch_size, 1), dtype=torch.bool, device=self.device)
-        out.set("done", falses)
-        out.set("terminated", falses.clone())
+        if terminated is None:
+            terminated = torch.zeros((*batch_size, 1), dtype=torch.bool, device=self.device)
+        out.set("done", terminated.clone())
+        out.set("terminated", terminated)
         return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -259,7 +419,8 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             next_state, reward, disagreement = self.dynamics.predict_with_disagreement(
                 state, action, members
             )
-        out = self._fill(next_state, tensordict.batch_size)
+        terminated = self.terminated(next_state).unsqueeze(-1)
+        out = self._fill(next_state, tensordict.batch_size, terminated)
         out.set(self.reward_key, reward)
         if self.disagreement_key is not None:
             out.set(self.disagreement_key, disagreement.unsqueeze(-1))
@@ -270,14 +431,10 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             state = tensordict.get(self.state_key)
             batch_size = tensordict.batch_size
         else:
-            # No start state given (e.g. check_env_specs): start from the spec's zero state.
+            # No start state given (e.g. check_env_specs): the real env's initial states.
             batch_size = tensordict.batch_size if tensordict is not None else self.batch_size
-            spec = self.observation_spec[self.state_key]
-            state = torch.zeros(
-                (*batch_size, *spec.shape[len(self.batch_size) :]),
-                dtype=spec.dtype,
-                device=self.device,
-            )
+            state = self._starts(batch_size.numel()).to(self.device)
+            state = state.reshape(*batch_size, state.shape[-1])
         if state.shape[-1] != self.dynamics.state_dim:
             raise ValueError(
                 f"reset state {self.state_key!r} has last dim {state.shape[-1]}, expected "

@@ -6,11 +6,13 @@ from torchrl_mbmf.modules.planners import (
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
+from torchrl_mbmf.modules.termination import LearnedTermination
 
 __all__ = [
     "DeltaDynamicsModel",
     "EnsembleDeltaDynamicsModel",
     "EnsemblePolicyGuidedPlanner",
+    "LearnedTermination",
     "PolicyGuidedMPCPlanner",
     "RandomShootingMPCPlanner",
     "make_ppo_actor_critic",

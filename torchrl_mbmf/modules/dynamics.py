@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from functools import partial
 
@@ -24,7 +25,10 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
     the state and the action, each standard-scaled with statistics of the training data; the
     network (``24 -> 500 -> 500 -> 19`` for HalfCheetah, ReLU hidden layers, linear output,
     :class:`torch.nn.Linear` layers) predicts the scaled delta ``s' - s`` and the scaled
-    reward. Actions are clipped to ``[action_low, action_high]`` before scaling. The scaling
+    reward. Actions are clipped to ``[action_low, action_high]`` before scaling when bounds are
+    given; by default there are none, and :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` sets
+    them to its env's action spec (so the model clips as the env's action space does, never
+    to a range of its own: Pendulum's ``[-2, 2]`` stays ``[-2, 2]``). The scaling
     statistics are buffers shared by all members, saved and loaded with the weights in
     ``state_dict``; :meth:`fit_normalizer` sets them from data, and :meth:`fold_scaling` is
     the one fold of the scaling into the weights that every fast path uses.
@@ -68,8 +72,10 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         min_log_var: lower soft bound of the log-variance (scaled units). Defaults to
             ``-10.0``.
         max_log_var: upper soft bound of the log-variance (scaled units). Defaults to ``0.5``.
-        action_low: lower clip of the action. Defaults to ``-1.0``.
-        action_high: upper clip of the action. Defaults to ``1.0``.
+        action_low: lower clip of the action, or ``None`` for none. Defaults to ``None``
+            (set from the env's action spec by ``LearnedDynamicsEnv``; the thesis'
+            HalfCheetah model clips to ``[-1, 1]``, its action space).
+        action_high: upper clip of the action, or ``None`` for none. Defaults to ``None``.
 
     Examples:
         >>> import torch
@@ -98,17 +104,20 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         probabilistic: bool = False,
         min_log_var: float = -10.0,
         max_log_var: float = 0.5,
-        action_low: float = -1.0,
-        action_high: float = 1.0,
+        action_low: float | None = None,
+        action_high: float | None = None,
     ) -> None:
         super().__init__()
         k = check_number(ensemble_size, "ensemble_size", minimum=1, integer=True)
-        if state_dim < 1 or action_dim < 1:
-            raise ValueError(
-                f"state_dim and action_dim must be >= 1, got state_dim={state_dim}, "
-                f"action_dim={action_dim}"
-            )
-        if action_low >= action_high:
+        check_number(state_dim, "state_dim", minimum=1, integer=True)
+        check_number(action_dim, "action_dim", minimum=1, integer=True)
+        for name, bound in (("action_low", action_low), ("action_high", action_high)):
+            number = isinstance(bound, int | float) and not isinstance(bound, bool)
+            if bound is not None and not (number and not math.isnan(bound)):
+                raise ValueError(f"{name} must be a number or None (no clip), got {bound!r}")
+        low = -math.inf if action_low is None else float(action_low)
+        high = math.inf if action_high is None else float(action_high)
+        if not low < high:
             raise ValueError(f"action_low={action_low} must be < action_high={action_high}")
         if not min_log_var < max_log_var:
             raise ValueError(f"min_log_var={min_log_var} must be < max_log_var={max_log_var}")
@@ -120,8 +129,9 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         self.state_dim = int(state_dim)
         self.action_dim = int(action_dim)
         self.hidden_sizes = check_hidden_sizes(hidden_sizes)
-        self.action_low = float(action_low)
-        self.action_high = float(action_high)
+        #: the action clip (``-inf``/``inf`` when there is none)
+        self.action_low = low
+        self.action_high = high
         self.ensemble_size = k
         self.probabilistic = bool(probabilistic)
         self.min_log_var = float(min_log_var)
@@ -142,6 +152,25 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         self.register_buffer("reward_loc", torch.zeros(1))
         self.register_buffer("reward_scale", torch.ones(1))
         self.register_buffer("normalizer_fitted", torch.zeros((), dtype=torch.bool))
+
+    @property
+    def action_bounds(self) -> tuple[float, float] | None:
+        """The action clip ``(low, high)``, or ``None`` when the model clips nothing."""
+        if math.isinf(self.action_low) and math.isinf(self.action_high):
+            return None
+        return self.action_low, self.action_high
+
+    def set_action_bounds(self, low: float, high: float) -> None:
+        """Sets the action clip (a learned env adopts its env's action spec with it).
+
+        Args:
+            low: lower bound.
+            high: upper bound.
+        """
+        low, high = float(low), float(high)
+        if not low < high:
+            raise ValueError(f"action bounds must have low < high, got [{low}, {high}]")
+        self.action_low, self.action_high = low, high
 
     @property
     def num_members(self) -> int:

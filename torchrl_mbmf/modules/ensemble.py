@@ -37,7 +37,8 @@ class EnsembleDeltaDynamicsModel(DeltaDynamicsModel):
             with its defaults: ``hidden_sizes`` (of every member, ``(500, 500)``),
             ``activation`` (``nn.ReLU``), ``probabilistic`` (Gaussian members trained with
             the NLL, needs ``K >= 2``; ``False``), ``min_log_var`` (``-10.0``),
-            ``max_log_var`` (``0.5``), ``action_low`` (``-1.0``), ``action_high`` (``1.0``).
+            ``max_log_var`` (``0.5``), ``action_low`` and ``action_high`` (``None``: no
+            clip until a learned env sets its action spec).
 
     Examples:
         >>> import torch

@@ -23,7 +23,7 @@ class StandardScaling:
     Examples:
         >>> import torch
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
-        >>> model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+        >>> model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,), action_low=-1.0, action_high=1.0)
         >>> s, a = torch.zeros(2, 3), torch.full((2, 1), 5.0)
         >>> model.scaled_inputs(s, a)[0, -1]  # the action is clipped to 1 first
         tensor(1.)
@@ -100,7 +100,7 @@ class StandardScaling:
         self.normalizer_fitted.fill_(True)
 
     def clip_action(self, action: torch.Tensor) -> torch.Tensor:
-        """Clips the action to ``[action_low, action_high]``."""
+        """Clips the action to ``[action_low, action_high]`` (unchanged without bounds)."""
         return action.clamp(self.action_low, self.action_high)
 
     def scaled_inputs(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

@@ -123,7 +123,7 @@ class RunFolderLock:
     """
 
     path: Path
-    _file: IO[str] | None = field(default=None, repr=False)
+    _file: IO[str] | None = field(default=None, init=False, repr=False)
 
     @property
     def held(self) -> bool:

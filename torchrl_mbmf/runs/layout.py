@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
 import platform
 import subprocess
@@ -37,6 +38,8 @@ import numpy as np
 import torch
 import yaml
 from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "CHECKPOINTS",
@@ -134,8 +137,15 @@ class RunFolder:
         self.file(MACHINE).write_text(json.dumps(machine_record(), indent=2) + "\n")
 
     def read_config(self) -> dict[str, Any]:
-        """``config.yaml`` as plain containers."""
-        return yaml.safe_load(self.file(CONFIG).read_text())
+        """``config.yaml`` as plain containers (a ``ValueError`` names a damaged file)."""
+        path = self.file(CONFIG)
+        try:
+            config = yaml.safe_load(path.read_text())
+        except (yaml.YAMLError, UnicodeDecodeError) as err:
+            raise ValueError(f"{str(path)!r} is not valid YAML ({err})") from err
+        if not isinstance(config, dict):
+            raise ValueError(f"{str(path)!r} holds a {type(config).__name__}, expected a mapping")
+        return config
 
     def read_commit(self) -> str:
         """The recorded git commit (``"unknown"`` if not recorded)."""
@@ -145,7 +155,7 @@ class RunFolder:
     def read_machine(self) -> dict[str, Any]:
         """``machine.json`` (empty if absent)."""
         path = self.file(MACHINE)
-        return json.loads(path.read_text()) if path.exists() else {}
+        return _read_json(path) if path.exists() else {}
 
     def write_summary(self, summary: Mapping[str, Any]) -> None:
         """Writes ``summary.json`` (the run finished)."""
@@ -154,27 +164,68 @@ class RunFolder:
     def read_summary(self) -> dict[str, Any] | None:
         """``summary.json``, or ``None`` for a run that has not finished."""
         path = self.file(SUMMARY)
-        return json.loads(path.read_text()) if path.exists() else None
+        return _read_json(path) if path.exists() else None
 
     def read_resume_log(self) -> list[dict[str, Any]]:
         """``resume_log.json``'s entries (empty if the run never resumed)."""
         path = self.file(RESUME_LOG)
-        return json.loads(path.read_text()) if path.exists() else []
+        return _read_json(path, list) if path.exists() else []
 
     def scalar_file(self, name: str) -> Path:
         """The CSV file of a logged scalar such as ``"train/episode_return"``."""
         return self.scalars / f"{name}.csv"
 
     def read_scalar(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """A logged scalar as ``(steps, values)`` arrays (empty if never logged)."""
+        """A logged scalar as ``(steps, values)`` arrays (empty if never logged).
+
+        Rows that are not a finite step and value (a damaged or hand-edited file) are left out
+        with a warning naming the file and the line.
+        """
         path = self.scalar_file(name)
         rows = []
+        skipped = []
         if path.exists():
             with path.open() as f:
-                rows = [(int(float(r[0])), float(r[1])) for r in csv.reader(f) if r]
+                for line, row in enumerate(csv.reader(f), start=1):
+                    if not row:
+                        continue
+                    parsed = _scalar_row(row)
+                    if parsed is None:
+                        skipped.append(line)
+                    else:
+                        rows.append(parsed)
+        if skipped:
+            log.warning(
+                "%s: left out %d row(s) that are not a finite step and value (lines %s)",
+                path,
+                len(skipped),
+                skipped[:10],
+            )
         steps = np.array([r[0] for r in rows], dtype=np.int64)
         values = np.array([r[1] for r in rows], dtype=np.float64)
         return steps, values
+
+
+def _scalar_row(row: list[str]) -> tuple[int, float] | None:
+    """``(step, value)`` of a CSV row, or ``None`` unless both are finite numbers."""
+    try:
+        step, value = float(row[0]), float(row[1])
+    except (ValueError, IndexError):
+        return None
+    if not (np.isfinite(step) and np.isfinite(value)) or step != int(step):
+        return None
+    return int(step), value
+
+
+def _read_json(path: Path, kind: type = dict) -> Any:
+    """A run folder's JSON file; a ``ValueError`` names it when it is damaged."""
+    try:
+        found = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{str(path)!r} is not valid JSON ({err})") from err
+    if not isinstance(found, kind):
+        raise ValueError(f"{str(path)!r} holds a {type(found).__name__}, expected {kind.__name__}")
+    return found
 
 
 def machine_record() -> dict[str, Any]:

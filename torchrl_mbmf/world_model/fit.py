@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
 from tqdm.auto import tqdm
 
 from torchrl_mbmf.checks import check_multi_step, check_multi_step_weight
@@ -256,6 +257,67 @@ def _early_stopping_loop(
     snapshot.restore()
 
 
+def with_transition_keys(
+    data: TransitionDataset | TensorDictBase,
+    state_key: NestedKey | None = None,
+    action_key: NestedKey | None = None,
+    reward_key: NestedKey | None = None,
+) -> TransitionDataset | TensorDictBase:
+    """The transitions under the keys the fit reads, or an error naming a missing key.
+
+    A :class:`~torchrl_mbmf.data.TransitionDataset` is read with its own keys: a key given
+    here must be the dataset's. A TensorDict holding the transitions under other keys is
+    returned as a view with ``state``, ``action``, ``("next", "state")`` and
+    ``("next", "reward")`` (its done flags kept).
+
+    Args:
+        data: the transitions.
+        state_key: the state's key, or ``None`` for ``"state"`` (a dataset: its own).
+        action_key: the action's key, or ``None`` for ``"action"``.
+        reward_key: the reward's key under ``"next"``, or ``None`` for ``"reward"``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_mbmf.world_model.fit import with_transition_keys
+        >>> td = TensorDict(observation=torch.zeros(4, 3), action=torch.zeros(4, 1),
+        ...                 next=TensorDict(observation=torch.ones(4, 3), reward=torch.ones(4, 1),
+        ...                                 batch_size=[4]), batch_size=[4])
+        >>> with_transition_keys(td, state_key="observation")["next", "state"].shape
+        torch.Size([4, 3])
+    """
+    given = {"state_key": state_key, "action_key": action_key, "reward_key": reward_key}
+    if isinstance(data, TransitionDataset):
+        for name, key in given.items():
+            if key is not None and key != getattr(data, name):
+                raise ValueError(
+                    f"{name}={key!r} but the dataset stores {getattr(data, name)!r}: build the "
+                    f"dataset with {name}={key!r} (collect_random_transitions(..., "
+                    f"{name}={key!r}))"
+                )
+        return data
+    keys = {
+        "state": state_key or "state",
+        "action": action_key or "action",
+        ("next", "state"): ("next", state_key or "state"),
+        ("next", "reward"): ("next", reward_key or "reward"),
+    }
+    present = set(data.keys(True))
+    missing = [key for key in keys.values() if key not in present]
+    if missing:
+        raise KeyError(
+            f"the transitions have no {missing[0]!r} entry (state_key={state_key!r}, "
+            f"action_key={action_key!r}, reward_key={reward_key!r}); they hold "
+            f"{sorted(map(str, data.keys(True, True)))}"
+        )
+    if all(new == old for new, old in keys.items()):
+        return data
+    out = data.select(*data.keys(True, True))  # new containers: the caller's data is not changed
+    for new, old in keys.items():
+        out.set(new, data.get(old))
+    return out
+
+
 def fit_world_model(
     model: DeltaDynamicsModel,
     data: TransitionDataset | TensorDictBase,
@@ -273,6 +335,9 @@ def fit_world_model(
     multi_step_weight: float = 1.0,
     early_stopping: EarlyStopping = "objective",
     bootstrap: bool | None = None,
+    state_key: NestedKey | None = None,
+    action_key: NestedKey | None = None,
+    reward_key: NestedKey | None = None,
 ) -> FitHistory | EnsembleFitHistory:
     """Fits a world model (one network or an ensemble) with Adam and early stopping.
 
@@ -314,6 +379,11 @@ def fit_world_model(
         bootstrap: train each member of an ensemble on its own bootstrap resample of the
             training split (``False``: every member on the whole split). Defaults to
             ``None``: ``True`` for an ensemble; one network takes ``None`` or ``False``.
+        state_key: key of the state in ``data`` (and, under ``"next"``, of the next state).
+            Defaults to ``None``: a dataset's own key, ``"state"`` in a TensorDict.
+        action_key: key of the action. Defaults to ``None`` (the dataset's, ``"action"``).
+        reward_key: key of the reward under ``"next"``. Defaults to ``None`` (the
+            dataset's, ``"reward"``).
 
     Returns:
         The :class:`FitHistory` (one network) or :class:`EnsembleFitHistory` (ensemble).
@@ -334,6 +404,7 @@ def fit_world_model(
         ('EnsembleFitHistory', 2)
     """
     check_fit_settings(val_fraction, batch_size, max_epochs, patience)
+    data = with_transition_keys(data, state_key, action_key, reward_key)
     multi_step = check_multi_step(multi_step)
     multi_step_weight = check_multi_step_weight(multi_step_weight)
     early_stopping = check_early_stopping(early_stopping)
@@ -508,7 +579,8 @@ def fit_dynamics(
             :func:`~torchrl_mbmf.world_model.fit.fit_world_model` (``lr``,
             ``batch_size``, ``max_epochs``, ``val_fraction``, ``patience``,
             ``fit_normalizer``, ``seed``, ``progress``, ``optimizer``, ``multi_step``,
-            ``multi_step_weight``, ``early_stopping``), the thesis' values by default.
+            ``multi_step_weight``, ``early_stopping``, and the keys ``state_key``,
+            ``action_key``, ``reward_key``), the thesis' values by default.
 
     Returns:
         The :class:`FitHistory`.

@@ -16,10 +16,12 @@ from torchrl_mbmf.modules.planners.rollout import (
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
 from torchrl_mbmf.modules.planners.stages import (
     Plan,
+    counted_steps,
     discounted_return,
     expand_candidates,
     gather_candidate,
     select_best,
+    terminated_return,
     truncated_return,
 )
 from torchrl_mbmf.modules.planners.values import MinQValue
@@ -40,6 +42,7 @@ __all__ = [
     "SequenceMixture",
     "ShootingPlanner",
     "TrustedHorizon",
+    "counted_steps",
     "discounted_return",
     "expand_candidates",
     "gather_candidate",
@@ -47,5 +50,6 @@ __all__ = [
     "learned_model",
     "model_transition",
     "select_best",
+    "terminated_return",
     "truncated_return",
 ]

@@ -19,6 +19,7 @@ from torchrl_mbmf.modules.planners.rollout import (
     CandidateSource,
     ImaginedRollout,
     SequenceMixture,
+    Termination,
     Transition,
     TrustedHorizon,
     imagine,
@@ -28,8 +29,10 @@ from torchrl_mbmf.modules.planners.rollout import (
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
 from torchrl_mbmf.modules.planners.stages import (
     Plan,
+    counted_steps,
     discounted_return,
     select_best,
+    terminated_return,
     truncated_return,
 )
 
@@ -47,10 +50,17 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
     replaceable hook too. Candidate sampling runs under ``torch.no_grad()`` and
     ``ExplorationType.RANDOM`` whatever the caller's mode.
 
+    **Terminations.** A candidate's score stops at its first imagined terminal state (the
+    learned env's ``terminated``): the reward of that step counts, later rewards and the
+    terminal value do not (:func:`~torchrl_mbmf.modules.planners.terminated_return`). On every
+    path: the tensor loops apply the env's own rule, ``env.rollout`` reports it.
+
     With a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` the rollout is a plain tensor loop
     over the model's cached fused step (:class:`CachedModelStep`: no tensordict per step, no
     spec checks, no autograd, pre-packed oneDNN weights on CPU); any
-    other :class:`~torchrl.envs.model_based.ModelBasedEnvBase` goes through ``env.rollout``.
+    other env (any other :class:`~torchrl.envs.model_based.ModelBasedEnvBase`, a subclass of the
+    learned env with its own ``_step``, a :class:`~torchrl.envs.TransformedEnv` around it, see
+    :func:`~torchrl_mbmf.modules.planners.learned_model`) goes through ``env.rollout``.
     Both draw the same random numbers in the same order, so they choose the same action
     (``planner.fast_path = False`` forces the generic path). The policy-guided planner runs
     that loop fused (:class:`~torchrl_mbmf.modules.planners.PolicyRollout`:
@@ -76,7 +86,9 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         value_key: output key of ``value_module``. Defaults to ``"state_value"``.
         discount: discount of the score. Defaults to ``1.0`` (the thesis' plain sum).
         action_key: action key. Defaults to ``"action"``.
-        log_prob_key: key of the chosen action's log-prob. Defaults to ``"action_log_prob"``.
+        log_prob_key: key of the chosen action's log-prob. Defaults to ``None``: the actor's
+            own ``log_prob_key`` (what TorchRL's losses built on that actor read), else
+            ``"action_log_prob"``.
         stats_key: key under which ``best_return`` and ``mean_return`` of the candidates are
             written, or ``None``. Defaults to ``"planner"``.
 
@@ -105,7 +117,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         value_key: NestedKey = "state_value",
         discount: float = 1.0,
         action_key: NestedKey = "action",
-        log_prob_key: NestedKey = "action_log_prob",
+        log_prob_key: NestedKey | None = None,
         stats_key: NestedKey | None = "planner",
     ) -> None:
         for name, value in (("num_candidates", num_candidates), ("horizon", horizon)):
@@ -123,7 +135,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         self.discount = float(discount)
         self.value_module = value_module
         self.value_key = value_key
-        self.log_prob_key = log_prob_key
         self.stats_key = stats_key
         spec = env.full_action_spec_unbatched[action_key]
         if not isinstance(spec, Bounded) or spec.domain != "continuous":
@@ -143,6 +154,9 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         if actor is not None:
             self.sampler = ActorSampler(actor)
             self._check_actor_size()
+        if log_prob_key is None:
+            log_prob_key = "action_log_prob" if self.sampler is None else self.sampler.log_prob_key
+        self.log_prob_key = log_prob_key
         self.fused_rollout = True
         self.policy_rollout: PolicyRollout | None = None
         out_keys = [action_key]
@@ -190,8 +204,15 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         rewards: torch.Tensor,
         final: TensorDictBase | None,
         trusted_steps: torch.Tensor | None = None,
+        terminated: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Candidate scores ``[*B, m]``: discounted return plus the optional terminal value.
+
+        A candidate that reaches a terminal state scores the rewards up to and including
+        that step, nothing after it and no terminal value
+        (:func:`~torchrl_mbmf.modules.planners.terminated_return`). An overriding hook is
+        called with the rewards after each candidate's terminal step zeroed (and, with an
+        adaptive horizon, the steps counted up to that terminal step as ``trusted_steps``).
 
         Args:
             rewards: imagined rewards ``[*B, m, h]``.
@@ -200,8 +221,12 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             trusted_steps: each candidate's trusted steps ``[*B, m]`` (adaptive horizon:
                 :func:`~torchrl_mbmf.modules.planners.truncated_return`), or ``None`` for
                 the whole horizon. Defaults to ``None``.
+            terminated: whether each imagined step reached a terminal state ``[*B, m, h]``,
+                or ``None`` when the env never terminates. Defaults to ``None``.
         """
         value = self.terminal_value(final) if self.value_module is not None else None
+        if terminated is not None:
+            return terminated_return(rewards, terminated, self.discount, value, trusted_steps)
         if trusted_steps is None:
             return discounted_return(rewards, self.discount, value)
         return truncated_return(rewards, trusted_steps, self.discount, value)
@@ -209,6 +234,12 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
     def terminal_value(self, final: TensorDictBase) -> torch.Tensor:
         """``value_module``'s value ``[*B, m]`` at the last imagined state."""
         return self.value_module(final.copy()).get(self.value_key)[..., 0]
+
+    def termination(self) -> Termination | None:
+        """The learned env's terminal-state rule for this plan, or ``None`` if it never ends."""
+        if getattr(self.env, "never_terminates", False):
+            return None
+        return self.env.terminated
 
     def transition(self) -> Transition:
         """The world model's step for this plan (its cached folded weights)."""
@@ -265,9 +296,15 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             and rollout is not None
             and rollout.model_step is self._model_step
         ):
-            out = rollout(state, num_candidates=self.num_candidates, horizon=self.horizon)
+            out = rollout(
+                state,
+                num_candidates=self.num_candidates,
+                horizon=self.horizon,
+                termination=self.termination(),
+            )
             if out is not None:
-                return ImaginedRollout(*out)
+                first, rewards, final, terminated = out
+                return ImaginedRollout(first, rewards, final, terminated=terminated)
         return imagine(
             state,
             num_candidates=self.num_candidates,
@@ -276,11 +313,12 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             transition=self.transition(),
             trust=self.horizon_mask(),
             keep_actions=self.refinement_rounds > 0,
+            termination=self.termination(),
         )
 
     def _rollout_generic(
         self, tensordict: TensorDictBase
-    ) -> tuple[torch.Tensor, torch.Tensor, TensorDictBase]:
+    ) -> tuple[torch.Tensor, torch.Tensor, TensorDictBase, torch.Tensor]:
         env = self.env
         start = tensordict.select(*self.in_keys).unsqueeze(-1)
         start = start.expand(*tensordict.batch_size, self.num_candidates).clone()
@@ -309,16 +347,42 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         first = rollout.get(self.action_key)[..., 0, :]
         rewards = rollout.get(("next", "reward"))[..., 0]
         final = rollout.get("next")[..., -1].select(*self.in_keys)
-        return first, rewards, final
+        nxt = rollout.get("next")
+        key = "terminated" if "terminated" in nxt else "done"
+        terminated = nxt.get(key, None)
+        if terminated is None:
+            terminated = torch.zeros(rewards.shape, dtype=torch.bool, device=rewards.device)
+        else:
+            terminated = terminated.reshape(rewards.shape).bool()
+        return first, rewards, final, terminated
 
     def _scored(
         self, state: torch.Tensor, source: CandidateSource | None
     ) -> tuple[ImaginedRollout, torch.Tensor]:
         out = self.rollout(state, source)
         final = self._final_entries(out.final_state) if self._reads_final() else None
-        if out.trusted_steps is None:  # the two-argument hook of planners that override it
-            return out, self.score_candidates(out.rewards, final)
-        return out, self.score_candidates(out.rewards, final, out.trusted_steps)
+        return out, self._score(out.rewards, final, out.trusted_steps, out.terminated)
+
+    def _score(
+        self,
+        rewards: torch.Tensor,
+        final: TensorDictBase | None,
+        trusted_steps: torch.Tensor | None,
+        terminated: torch.Tensor | None,
+    ) -> torch.Tensor:
+        if terminated is not None:
+            if type(self).score_candidates is ShootingPlanner.score_candidates:
+                return self.score_candidates(rewards, final, trusted_steps, terminated)
+            # an overridden hook sees the rewards after each candidate's terminal step zeroed
+            # (and, when it is given trusted steps, the counted steps as those)
+            counted, _ = counted_steps(terminated, trusted_steps)
+            steps = torch.arange(rewards.shape[-1], device=rewards.device)
+            rewards = rewards.masked_fill(steps >= counted.unsqueeze(-1), 0.0)
+            if trusted_steps is not None:
+                trusted_steps = counted
+        if trusted_steps is None:  # the two-argument hook of planners that override it
+            return self.score_candidates(rewards, final)
+        return self.score_candidates(rewards, final, trusted_steps)
 
     def plan(self, tensordict: TensorDictBase) -> Plan:
         """Expands, rolls out, scores and selects the candidates of every batch element.
@@ -333,12 +397,22 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         Returns:
             The :class:`Plan`, with the statistics the planner writes.
         """
+        state = tensordict.get(self.state_key, None)
+        if state is None:
+            raise KeyError(
+                f"{type(self).__name__} plans from {self.state_key!r}, which its input lacks "
+                f"(keys: {sorted(map(str, tensordict.keys(True, True)))})"
+            )
+        if not torch.isfinite(state).all():
+            raise ValueError(
+                f"{type(self).__name__} got a NaN or Inf {self.state_key!r}: no plan can start "
+                "from it"
+            )
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             if not self.fast_path:
-                first, rewards, final = self._rollout_generic(tensordict)
-                returns = self.score_candidates(rewards, final)
+                first, rewards, final, terminated = self._rollout_generic(tensordict)
+                returns = self._score(rewards, final, None, terminated)
                 return Plan(first, returns, select_best(returns))
-            state = tensordict.get(self.state_key)
             out, returns = self._scored(state, None)
             if not self.refinement_rounds:
                 best = select_best(returns)

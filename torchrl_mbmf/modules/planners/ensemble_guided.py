@@ -118,8 +118,8 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
             model = getattr(env, "dynamics", None)
             raise TypeError(
                 "env must be a LearnedDynamicsEnv on an EnsembleDeltaDynamicsModel (an ensemble, "
-                "ensemble_size >= 2), got "
-                f"{type(env).__name__} on {type(model).__name__}"
+                "ensemble_size >= 2), stepped as its model (not wrapped in a TransformedEnv, no "
+                f"_step of its own), got {type(env).__name__} on {type(model).__name__}"
             )
         if disagreement_threshold is not None:
             if isinstance(disagreement_threshold, bool) or not isinstance(

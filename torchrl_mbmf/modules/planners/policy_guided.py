@@ -8,6 +8,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
+from torchrl_mbmf.checks import check_number
 from torchrl_mbmf.modules.planners.common import ShootingPlanner
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
@@ -27,7 +28,8 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
     ``ExplorationType.DETERMINISTIC`` (otherwise all candidates would collapse onto the mode).
 
     The planner writes the executed action and, evaluated at the real state, the actor's
-    ``loc``/``scale`` and the action's log-probability (``action_log_prob``): batches collected
+    ``loc``/``scale`` and the action's log-probability (under the actor's ``log_prob_key``,
+    ``action_log_prob`` by default): batches collected
     with it feed :class:`~torchrl.objectives.ClipPPOLoss` (and a replay buffer for
     :class:`~torchrl.objectives.SACLoss`) unchanged. Note the off-policy bias this implies, as
     in the thesis: the executed action is the best of ``m`` policy samples, not a plain sample,
@@ -113,16 +115,19 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
                 )
             if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
                 raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
-            if not 1 <= num_elites <= num_candidates:
+            elites = isinstance(num_elites, int) and not isinstance(num_elites, bool)
+            if not elites or not 1 <= num_elites <= num_candidates:
                 raise ValueError(
-                    f"num_elites must be in [1, num_candidates={num_candidates}], got {num_elites}"
+                    f"num_elites must be an integer in [1, num_candidates={num_candidates}], "
+                    f"got {num_elites!r}"
                 )
-            if not 0.0 <= policy_fraction < 1.0:
+            check_number(policy_fraction, "policy_fraction", minimum=0)
+            if not policy_fraction < 1.0:
                 raise ValueError(f"policy_fraction must be in [0, 1), got {policy_fraction}")
-            if temperature <= 0:
+            check_number(temperature, "temperature", minimum=0)
+            if temperature == 0:
                 raise ValueError(f"temperature must be > 0, got {temperature}")
-            if min_std < 0:
-                raise ValueError(f"min_std must be >= 0, got {min_std}")
+            check_number(min_std, "min_std", minimum=0)
         self.iterations = int(iterations)
         self.num_elites = int(num_elites)
         self.num_policy = round(policy_fraction * num_candidates)
@@ -142,6 +147,7 @@ class PolicyGuidedMPCPlanner(ShootingPlanner):
             and cls.rollout is ShootingPlanner.rollout
             and cls.candidate_source is ShootingPlanner.candidate_source
             and cls.transition is ShootingPlanner.transition
+            and cls.horizon_mask is ShootingPlanner.horizon_mask
             and type(self._model_step) is CachedModelStep
         )
 

@@ -7,6 +7,7 @@ from collections.abc import Callable
 import torch
 
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
+from torchrl_mbmf.modules.planners.rollout import Termination
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
 
 ObservationFn = Callable[[torch.Tensor], torch.Tensor | None]
@@ -23,8 +24,9 @@ class PolicyRollout:
     the actor's linear layers are single ``addmm`` calls on its live weights and a
     state-independent scale is computed once per plan
     (:meth:`ActorSampler.tight_params`), and the model runs its folded layers
-    (:meth:`CachedModelStep.layers`). It draws the same random numbers in the same order and
-    runs the same floating-point operations on the same values, so its candidates, returns
+    (:meth:`CachedModelStep.layers`); a termination rule is applied to every imagined next
+    state as the step-by-step loop applies it. It draws the same random numbers in the same
+    order and runs the same floating-point operations on the same values, so its candidates, returns
     and chosen actions equal the step-by-step loop's.
 
     Args:
@@ -46,9 +48,13 @@ class PolicyRollout:
         ... )
         >>> rollout.available()
         True
-        >>> first, rewards, final = rollout(torch.zeros(2, 3), num_candidates=15, horizon=10)
+        >>> first, rewards, final, ends = rollout(
+        ...     torch.zeros(2, 3), num_candidates=15, horizon=10,
+        ...     termination=lambda s: s[..., 0] > 0.5)
         >>> first.shape, rewards.shape, final.shape
         (torch.Size([2, 15, 1]), torch.Size([2, 15, 10]), torch.Size([2, 15, 3]))
+        >>> ends.shape, ends.dtype
+        (torch.Size([2, 15, 10]), torch.bool)
     """
 
     def __init__(
@@ -64,18 +70,30 @@ class PolicyRollout:
 
     @torch.no_grad()
     def __call__(
-        self, state: torch.Tensor, *, num_candidates: int, horizon: int
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        self,
+        state: torch.Tensor,
+        *,
+        num_candidates: int,
+        horizon: int,
+        termination: Termination | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None] | None:
         """Rolls out the candidates of every real state (``None`` when not :meth:`available`).
 
         Args:
             state: real states ``[*B, state_dim]``.
+
+        Keyword Args:
             num_candidates: ``m``.
             horizon: ``h``.
+            termination: the terminal states' rule, applied to every imagined next state
+                ``[N, state_dim]``, or ``None`` (the env never terminates). Defaults to
+                ``None``.
 
         Returns:
             Every candidate's first action ``[*B, m, action_dim]``, its rewards
-            ``[*B, m, h]`` and its last state ``[*B, m, state_dim]``, or ``None``.
+            ``[*B, m, h]``, its last state ``[*B, m, state_dim]`` and whether each step
+            reached a terminal state ``[*B, m, h]`` (``None`` without ``termination``), or
+            ``None``.
         """
         tight = self.sampler.tight_params()
         folded = self.model_step.layers()
@@ -101,6 +119,7 @@ class PolicyRollout:
         out = state.new_empty(horizon, n, d + 1)  # every step's [delta, reward]
         outs, deltas = out.unbind(0), out[:, :, :d].unbind(0)
         first = None
+        ends = None if termination is None else state.new_zeros(horizon, n, dtype=torch.bool)
         sample = self.sampler.sample_params
         for t in range(horizon):
             if t and not obs_is_view:
@@ -118,9 +137,17 @@ class PolicyRollout:
             else:
                 torch.addmm(last[1], y, last[0], out=outs[t])
             s.add_(deltas[t])
+            if ends is not None:
+                ends[t] = termination(s)
         rewards = out[:, :, d].t().contiguous()
         shape = (*batch, num_candidates)
-        return first.view(*shape, -1), rewards.view(*shape, horizon), s.clone().view(*shape, d)
+        terminated = None if ends is None else ends.t().contiguous().view(*shape, horizon)
+        return (
+            first.view(*shape, -1),
+            rewards.view(*shape, horizon),
+            s.clone().view(*shape, d),
+            terminated,
+        )
 
 
 def _shares_memory(view: torch.Tensor, base: torch.Tensor) -> bool:

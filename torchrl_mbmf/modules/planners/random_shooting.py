@@ -30,7 +30,8 @@ class RandomShootingMPCPlanner(ShootingPlanner):
         value_key: output key of ``value_module``. Defaults to ``"state_value"``.
         discount: discount of the score. Defaults to ``1.0``.
         action_key: action key. Defaults to ``"action"``.
-        log_prob_key: log-prob key. Defaults to ``"action_log_prob"``.
+        log_prob_key: log-prob key. Defaults to the actor's ``log_prob_key`` (else
+            ``"action_log_prob"``).
         stats_key: key of the candidates' best/mean predicted return. Defaults to ``"planner"``.
 
     Examples:

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from torchrl.envs.model_based import ModelBasedEnvBase
 
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.ensemble_layers import FusedEnsembleStep
@@ -20,6 +21,8 @@ from torchrl_mbmf.modules.planners.stages import expand_candidates
 
 #: ``source(states [*B, m, S], step) -> actions [*B, m, A]``.
 CandidateSource = Callable[[torch.Tensor, int], torch.Tensor]
+#: ``termination(states [*B, m, S]) -> terminated [*B, m]`` (bool).
+Termination = Callable[[torch.Tensor], torch.Tensor]
 #: ``transition(states, actions) -> (next_states, rewards [*B, m], disagreement or None)``.
 Transition = Callable[
     [torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]
@@ -30,6 +33,7 @@ __all__ = [
     "ImaginedRollout",
     "MemberTransition",
     "SequenceMixture",
+    "Termination",
     "Transition",
     "TrustedHorizon",
     "imagine",
@@ -43,7 +47,11 @@ def learned_model(env: object) -> DeltaDynamicsModel | None:
 
     A learned env (such as :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv`) exposes its
     ``dynamics`` (a :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`), its ``state_key``, its
-    ``observation_key`` and ``observation(state)``, the policy observation of a state tensor.
+    ``observation_key``, ``observation(state)``, the policy observation of a state tensor, and
+    ``terminated(state)``, its terminal states. Only an env whose ``steps_as_its_model()`` says
+    its step is exactly that (no overridden ``_step``) qualifies: a
+    :class:`~torchrl.envs.TransformedEnv` around it (a reward transform, say) or a subclass
+    with its own step does not, and the planners then roll out through ``env.rollout``.
 
     Args:
         env: any env.
@@ -57,6 +65,11 @@ def learned_model(env: object) -> DeltaDynamicsModel | None:
         >>> learned_model(env) is env.dynamics, learned_model(real)
         (True, None)
     """
+    if not isinstance(env, ModelBasedEnvBase):  # a TransformedEnv forwards attributes
+        return None
+    check = getattr(env, "steps_as_its_model", None)
+    if not callable(check) or not check():
+        return None
     model = getattr(env, "dynamics", None)
     steppable = callable(getattr(env, "observation", None)) and hasattr(env, "state_key")
     return model if isinstance(model, DeltaDynamicsModel) and steppable else None
@@ -74,6 +87,8 @@ class ImaginedRollout:
         actions: every candidate's actions ``[*B, m, h, A]``, when they were kept.
         trusted_steps: trusted steps ``[*B, m]`` (with a :class:`TrustedHorizon`).
         disagreement: the transition's disagreement ``[*B, m, h]``, when it reports one.
+        terminated: whether each imagined step reached a terminal state ``[*B, m, h]``
+            (bool), when the learned env can terminate.
 
     Examples:
         >>> import torch
@@ -87,6 +102,7 @@ class ImaginedRollout:
     actions: torch.Tensor | None = None
     trusted_steps: torch.Tensor | None = None
     disagreement: torch.Tensor | None = None
+    terminated: torch.Tensor | None = None
 
 
 class TrustedHorizon:
@@ -248,6 +264,7 @@ def imagine(
     transition: Transition,
     trust: TrustedHorizon | None = None,
     keep_actions: bool = False,
+    termination: Termination | None = None,
 ) -> ImaginedRollout:
     """Expands the real states into candidates and rolls them ``horizon`` imagined steps.
 
@@ -263,6 +280,8 @@ def imagine(
             Defaults to none.
         keep_actions: keep every step's actions (for refitting a sampling distribution).
             Defaults to ``False``.
+        termination: the terminal states' rule, applied to every imagined next state, or
+            ``None`` when the env never terminates. Defaults to ``None``.
 
     Returns:
         The :class:`ImaginedRollout`.
@@ -279,6 +298,9 @@ def imagine(
     s = expand_candidates(state, num_candidates)
     rewards = s.new_empty(*s.shape[:-1], horizon)
     actions = disagreement = first = None
+    terminated = None
+    if termination is not None:
+        terminated = torch.zeros(rewards.shape, dtype=torch.bool, device=s.device)
     if trust is not None:
         trust.start(s)
     for t in range(horizon):
@@ -291,13 +313,17 @@ def imagine(
             actions[..., t, :] = a
         s, r, d = transition(s, a)
         rewards[..., t] = r
+        if terminated is not None:
+            terminated[..., t] = termination(s)
         if d is not None:
             if disagreement is None:
                 disagreement = s.new_empty(*s.shape[:-1], horizon)
             disagreement[..., t] = d
         if trust is not None:
             trust.update(s, d)
-    out = ImaginedRollout(first, rewards, s, actions, disagreement=disagreement)
+    out = ImaginedRollout(
+        first, rewards, s, actions, disagreement=disagreement, terminated=terminated
+    )
     if trust is not None:
         out.trusted_steps, out.final_state = trust.finish(s, horizon)
     return out

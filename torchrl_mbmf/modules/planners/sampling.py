@@ -107,6 +107,8 @@ class ActorSampler:
         self.distribution_class = prob.distribution_class
         self.distribution_kwargs = dict(prob.distribution_kwargs or {})
         self.param_keys: list[NestedKey] = list(actor.dist_params_keys)
+        #: the key under which the actor writes its action's log-prob (losses read it)
+        self.log_prob_key: NestedKey = getattr(prob, "log_prob_key", None) or "action_log_prob"
         params_modules = list(actor.module[:-1])
         in_keys = {k for m in params_modules for k in m.in_keys}
         in_keys -= {k for m in params_modules for k in m.out_keys}

@@ -88,6 +88,78 @@ def truncated_return(
     return total
 
 
+def counted_steps(
+    terminated: torch.Tensor, trusted_steps: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Steps counted in each candidate's score and whether it ended at a terminal state.
+
+    A candidate's score counts its steps up to and including its first terminal step (and no
+    more than its ``trusted_steps``); it *ended* when that terminal step is among the counted
+    ones (then no terminal value is added).
+
+    Args:
+        terminated: whether each imagined step reached a terminal state ``[*B, m, h]``.
+        trusted_steps: each candidate's trusted steps ``[*B, m]``, or ``None`` for all ``h``.
+            Defaults to ``None``.
+
+    Returns:
+        ``(steps [*B, m], ended [*B, m])``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners import counted_steps
+        >>> done = torch.tensor([[False, True, False], [False, False, False]])
+        >>> counted_steps(done)
+        (tensor([2, 3]), tensor([ True, False]))
+        >>> counted_steps(done, torch.tensor([1, 2]))
+        (tensor([1, 2]), tensor([False, False]))
+    """
+    h = terminated.shape[-1]
+    ever = terminated.any(-1)
+    first = terminated.to(torch.int8).argmax(-1)  # the first True (0 when none)
+    steps = torch.where(ever, first + 1, torch.full_like(first, h))
+    if trusted_steps is None:
+        return steps, ever
+    ended = ever & (first < trusted_steps)
+    return torch.minimum(steps, trusted_steps.to(steps.dtype)), ended
+
+
+def terminated_return(
+    rewards: torch.Tensor,
+    terminated: torch.Tensor,
+    discount: float = 1.0,
+    terminal_value: torch.Tensor | None = None,
+    trusted_steps: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The score of candidates that may reach terminal states.
+
+    ``sum_{t <= k} discount**t * r_t`` for a candidate whose first terminal step is ``k``
+    (that step's reward counted, nothing after it, no terminal value); a candidate that
+    does not terminate scores as :func:`truncated_return` (``trusted_steps``, or the whole
+    horizon, plus the discounted terminal value).
+
+    Args:
+        rewards: imagined rewards ``[*B, m, h]``.
+        terminated: whether each imagined step reached a terminal state ``[*B, m, h]``.
+        discount: per-step discount. Defaults to ``1.0``.
+        terminal_value: value of every candidate's last (trusted) state ``[*B, m]``.
+            Defaults to none.
+        trusted_steps: each candidate's trusted steps ``[*B, m]``. Defaults to all ``h``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.planners import terminated_return
+        >>> rewards = torch.ones(2, 4)
+        >>> done = torch.tensor([[True, False, False, False], [False] * 4])
+        >>> terminated_return(rewards, done, terminal_value=torch.tensor([100.0, 100.0]))
+        tensor([  1., 104.])
+    """
+    steps, ended = counted_steps(terminated, trusted_steps)
+    if terminal_value is not None:
+        terminal_value = terminal_value.masked_fill(ended, 0.0)
+    return truncated_return(rewards, steps, discount, terminal_value)
+
+
 def select_best(returns: torch.Tensor) -> torch.Tensor:
     """Index of the highest-scoring candidate along the last dim (first one on ties).
 
@@ -189,9 +261,11 @@ class Plan:
 
 __all__ = [
     "Plan",
+    "counted_steps",
     "discounted_return",
     "expand_candidates",
     "gather_candidate",
     "select_best",
+    "terminated_return",
     "truncated_return",
 ]
