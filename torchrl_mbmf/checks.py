@@ -20,7 +20,9 @@ __all__ = [
     "KINDS",
     "ConfigError",
     "Setting",
+    "TrainingDivergedError",
     "check_arguments",
+    "check_finite",
     "check_input_file",
     "check_multi_step",
     "check_multi_step_weight",
@@ -430,3 +432,34 @@ def check_recipe_overrides(cfg: Any) -> None:
 
     known = OmegaConf.to_container(cfg, resolve=False)
     check_no_added_keys(list(HydraConfig.get().overrides.task), known)  # type: ignore[arg-type]
+
+
+class TrainingDivergedError(RuntimeError):
+    """A logged loss, return or statistic became NaN or infinite; the message names it."""
+
+
+def check_finite(metrics: Mapping[str, float], step: int) -> None:
+    """Raises if any scalar is NaN or infinite (one ``math.isfinite`` per scalar: cheap).
+
+    Args:
+        metrics: name -> value, as logged.
+        step: the real-step count the values belong to (named in the message).
+
+    Raises:
+        TrainingDivergedError: naming the first non-finite quantity, its value and the step.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import TrainingDivergedError, check_finite
+        >>> check_finite({"loss/loss_objective": 0.1}, step=2048)
+        >>> try:
+        ...     check_finite({"loss/loss_critic": float("nan")}, step=4096)
+        ... except TrainingDivergedError as err:
+        ...     print(err)
+        loss/loss_critic=nan at real step 4096: the run diverged (not logged, not checkpointed)
+    """
+    for name, value in metrics.items():
+        if not math.isfinite(value):
+            raise TrainingDivergedError(
+                f"{name}={value} at real step {step}: the run diverged (not logged, not "
+                "checkpointed)"
+            )

@@ -17,11 +17,10 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger, get_logger
 
-from torchrl_mbmf.checks import choice
+from torchrl_mbmf.checks import check_finite, choice
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.envs.factory import make_env
 from torchrl_mbmf.runs.layout import LOGS
-from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.hooks import (
     EpisodeLog,
     Evaluation,

@@ -22,6 +22,7 @@ from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs.utils import RandomPolicy
 
+from torchrl_mbmf.checks import check_finite
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
 from torchrl_mbmf.runs.claim import claim_run_folder
@@ -38,7 +39,6 @@ from torchrl_mbmf.trainers.build import (
 from torchrl_mbmf.trainers.components import instantiate_group
 from torchrl_mbmf.trainers.config import TrainSettings, flatten_config
 from torchrl_mbmf.trainers.device import resolve_device
-from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 from torchrl_mbmf.trainers.signals import StopRequest
