@@ -5,7 +5,8 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_mbmf.analysis import horizon_predictions, horizon_table, multistep_mse
-from torchrl_mbmf.data import TransitionDataset
+from torchrl_mbmf.data import TransitionDataset, collect_random_transitions
+from torchrl_mbmf.envs import make_env, make_gym_state_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
 
 
@@ -37,7 +38,7 @@ def _dataset_and_model():
 
 def test_multistep_mse_brute_force():
     data, model, x, a = _dataset_and_model()
-    errors = multistep_mse(model, data, horizons=(1, 3, 5), num_starts=None)
+    errors = multistep_mse(model, data, horizons=(1, 3, 5), num_starts=None, x_index=0)
     assert [e.horizon for e in errors] == [1, 3, 5]
     # brute force: start at every t with 5 steps ahead; prediction x_t + 0.1 k, reward 0.5
     n = 40
@@ -59,12 +60,12 @@ def test_multistep_mse_brute_force():
 
 def test_predictions_and_table():
     data, model, _, _ = _dataset_and_model()
-    out = horizon_predictions(model, data, 4, num_rollouts=3, seed=0)
+    out = horizon_predictions(model, data, 4, num_rollouts=3, seed=0, x_index=0)
     assert out["x_pred"].shape == out["x_real"].shape == (3, 4)
     torch.testing.assert_close(
         out["x_pred"], out["x_start"][:, None] + 0.1 * torch.arange(1, 5).float()
     )
-    errors = multistep_mse(model, data, horizons=(5, 10))
+    errors = multistep_mse(model, data, horizons=(5, 10), x_index=0)
     table = horizon_table(errors)
     assert "| 10 |" in table and "2.489" in table
 
@@ -77,6 +78,41 @@ def test_errors():
         multistep_mse(model, data, horizons=(100,))
     with pytest.raises(ValueError, match="horizon must be >= 1"):
         horizon_predictions(model, data, 0)
+    for bad in (-1, "x", 1.0, True):
+        with pytest.raises(ValueError, match=f"x_index must be a state index.*got {bad!r}"):
+            multistep_mse(model, data, horizons=(5,), x_index=bad)
+    with pytest.raises(ValueError, match="x_index=2 is not an index of the 2-dim state"):
+        multistep_mse(model, data, horizons=(5,), x_index=2)
+    # the mock task has no known layout: no x position to plot, the rewards only
+    assert sorted(horizon_predictions(model, data, 3)) == ["reward_pred", "reward_real"]
+
+
+@pytest.mark.parametrize(
+    ("build", "x_index"),
+    [
+        (lambda: make_env("Hopper-v5"), 0),  # x first; dim 1 is the height
+        (lambda: make_gym_state_env("Hopper-v5"), None),  # Gymnasium's default: no x in it
+        (lambda: make_env("Pendulum-v1"), None),
+        (lambda: make_env("MountainCarContinuous-v0"), None),  # no known layout
+    ],
+)
+def test_x_index_is_the_tasks(build, x_index):
+    """The x errors read the task's x where its state has one, and are None elsewhere."""
+    env = build()
+    data = collect_random_transitions(env, 60, seed=0)
+    state_dim = env.full_observation_spec_unbatched["state"].shape[-1]
+    action_dim = env.full_action_spec_unbatched["action"].shape[-1]
+    model = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=(8,))
+    errors = multistep_mse(model, data, horizons=(1, 5), num_starts=None)
+    for e in errors:
+        if x_index is None:
+            assert e.x_mse is None and e.x_mse_final is None
+        else:
+            assert e.x_mse == pytest.approx(e.state_mse[x_index], rel=1e-6)
+    assert ("n/a" in horizon_table(errors).splitlines()[-1]) == (x_index is None)
+    # an explicit index always wins over the task's
+    (dim1,) = multistep_mse(model, data, horizons=(5,), num_starts=None, x_index=1)
+    assert dim1.x_mse == pytest.approx(dim1.state_mse[1], rel=1e-6)
 
 
 def test_rollouts_never_cross_an_unflagged_reset():
@@ -107,8 +143,8 @@ def test_rollouts_never_cross_an_unflagged_reset():
         torch.nn.init.zeros_(p)
     model.delta_loc.copy_(torch.tensor([1.0, 0.0]))  # the exact dynamics
     model.reward_loc.fill_(2.0)
-    (err,) = multistep_mse(model, data, horizons=(3,), num_starts=None)
+    (err,) = multistep_mse(model, data, horizons=(3,), num_starts=None, x_index=0)
     assert err.num_rollouts == 2 * (6 - 3 + 1)
     assert err.x_mse == 0.0 and err.reward_mse == 0.0
-    out = horizon_predictions(model, data, 3, num_rollouts=8, seed=1)
+    out = horizon_predictions(model, data, 3, num_rollouts=8, seed=1, x_index=0)
     torch.testing.assert_close(out["x_pred"], out["x_real"])

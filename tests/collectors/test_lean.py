@@ -65,6 +65,9 @@ CASES = [
     ("HalfCheetah-v5", "head_pen", "planner"),
     ("Pendulum-v1", "default", "ppo"),
     ("Pendulum-v1", "default", "random"),
+    # tasks that terminate (Gymnasium's health rules) inside the batches
+    ("Hopper-v5", "default", "ppo"),
+    ("InvertedPendulum-v5", "default", "sac"),
 ]
 
 

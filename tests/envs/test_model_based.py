@@ -273,3 +273,19 @@ def test_fit_and_dataset_read_the_same_state_key():
     assert "state" not in set(renamed.keys())  # the caller's data is left as it was
     with pytest.raises(KeyError, match=r"no .*nope.* entry"):
         fit_dynamics(m, renamed, max_epochs=1, state_key="nope")
+
+
+def test_learned_env_over_a_single_transform_env():
+    """A TransformedEnv built with one transform holds it bare, not in a Compose."""
+    from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
+
+    from torchrl_mbmf.envs import LearnedDynamicsEnv
+    from torchrl_mbmf.modules import DeltaDynamicsModel
+
+    real = TransformedEnv(GymEnv("Pendulum-v1"), DoubleToFloat())
+    model_env = LearnedDynamicsEnv(
+        DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), real, state_key="observation"
+    )
+    assert model_env.rollout(3, tensordict=model_env.reset(real.reset()), auto_reset=False)[
+        "next", "reward"
+    ].shape == (3, 1)

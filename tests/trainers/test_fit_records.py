@@ -65,9 +65,11 @@ def test_each_fit_is_snapshotted_and_each_refit_logs_the_replaced_models_heldout
     ours, saved = trainer.world.model.state_dict(), last.state_dict()
     assert list(ours) == list(saved)
     assert all(torch.equal(ours[k], saved[k]) for k in ours)
-    # held-out errors at the two refits only (the first fit has no predecessor)
-    rows = _csv(tmp_path / "on/logs/scalars/model/heldout_x_mse_h10.csv")
+    # held-out errors at the two refits only (the first fit has no predecessor); Pendulum's
+    # state has no x position, so only the reward's are recorded
+    rows = _csv(tmp_path / "on/logs/scalars/model/heldout_reward_mse_h10.csv")
     assert len(rows) == 2 and all(v >= 0 for _, v in rows)
+    assert not (tmp_path / "on/logs/scalars/model/heldout_x_mse_h10.csv").exists()
     # recording changes no training number
     _, off = _run(tmp_path / "off", "world_model.save_fits=false")
     assert off["params_sha256"] == summary["params_sha256"]
@@ -79,7 +81,10 @@ def test_heldout_errors_match_a_step_by_step_rollout_of_the_unseen_rows():
     torch.manual_seed(0)
     model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
     state = torch.random.get_rng_state()
-    errors = heldout_open_loop_errors(model, data, since=400, horizons=(2, 5), num_starts=None)
+    # state dim 0 (Pendulum's cos) stands for an x position here
+    errors = heldout_open_loop_errors(
+        model, data, since=400, horizons=(2, 5), num_starts=None, x_index=0
+    )
     assert torch.equal(torch.random.get_rng_state(), state)  # the global generator is untouched
     td = data.tensors()
     s, a = td["state"].float(), td["action"].float()
@@ -100,6 +105,9 @@ def test_heldout_errors_match_a_step_by_step_rollout_of_the_unseen_rows():
     assert errors["model/heldout_x_mse_h5"] == pytest.approx(float(x_err.mean()), rel=1e-5)
     assert errors["model/heldout_reward_mse_h5"] == pytest.approx(float(r_err.mean()), rel=1e-5)
     assert heldout_open_loop_errors(model, data, since=600) == {}
+    # by default the x index is the task's: Pendulum has none
+    default = heldout_open_loop_errors(model, data, since=400, horizons=(2, 5), num_starts=None)
+    assert default == {k: v for k, v in errors.items() if "_x_" not in k}
 
 
 def test_a_damaged_snapshot_is_refused(tmp_path):

@@ -247,7 +247,8 @@ def _horizon(roots: Sequence[str | Path], out_dir: Path) -> dict[str, Any]:
         folders.append(f.parent.name)
         for e in json.loads(f.read_text()):
             row = by_h.setdefault(int(e["horizon"]), {"x_mse": [], "reward_mse": []})
-            row["x_mse"].append(float(e["x_mse"]))
+            if e["x_mse"] is not None:  # None: a state without an x position
+                row["x_mse"].append(float(e["x_mse"]))
             row["reward_mse"].append(float(e["reward_mse"]))
     thesis = THESIS_HORIZON_MSE
     rows = []

@@ -14,10 +14,10 @@ import torch
 from torchrl_mbmf.analysis.horizon import horizon_predictions, horizon_table
 from torchrl_mbmf.checks import check_multi_step, check_number
 from torchrl_mbmf.data.transitions import TransitionDataset, collect_random_transitions
-from torchrl_mbmf.envs.factory import env_metadata, make_env
+from torchrl_mbmf.envs.factory import action_bounds, env_metadata, make_env
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
-from torchrl_mbmf.objectives.open_loop import HorizonError, multistep_mse
+from torchrl_mbmf.objectives.open_loop import HorizonError, multistep_mse, resolve_x_index
 from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
 
 logger = logging.getLogger(__name__)
@@ -45,18 +45,20 @@ def plot_horizon_predictions(
         seed: seed of the start-state sampling. Defaults to ``0``.
 
     Returns:
-        The written files (``horizon_x.png``, ``horizon_reward.png``).
+        The written files (``horizon_x.png``, ``horizon_reward.png``; the x plot only where
+        the dataset's task has an x position,
+        :func:`~torchrl_mbmf.objectives.open_loop.resolve_x_index`).
 
     Examples:
         >>> import tempfile
         >>> from pathlib import Path
         >>> from torchrl_mbmf.data import collect_random_transitions
-        >>> from torchrl_mbmf.envs import make_gym_state_env
+        >>> from torchrl_mbmf.envs import make_env
         >>> from torchrl_mbmf.modules import DeltaDynamicsModel
         >>> from torchrl_mbmf.analysis.world_model_job import plot_horizon_predictions
-        >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 60, seed=0)
+        >>> data = collect_random_transitions(make_env("Hopper-v5"), 60, seed=0)
         >>> with tempfile.TemporaryDirectory() as d:
-        ...     files = plot_horizon_predictions(DeltaDynamicsModel(3, 1), data, [5], Path(d))
+        ...     files = plot_horizon_predictions(DeltaDynamicsModel(12, 3), data, [5], Path(d))
         >>> [f.name for f in files]
         ['horizon_x.png', 'horizon_reward.png']
     """
@@ -66,7 +68,10 @@ def plot_horizon_predictions(
     import matplotlib.pyplot as plt
 
     files = []
-    for quantity, label in (("x", "x position (m)"), ("reward", "reward per step")):
+    quantities = [("x", "x position (m)"), ("reward", "reward per step")]
+    if resolve_x_index(data) is None:  # the task's state has no x position (Pendulum)
+        quantities = quantities[1:]
+    for quantity, label in quantities:
         fig, axes = plt.subplots(1, len(horizons), figsize=(4.2 * len(horizons), 3.4))
         axes = [axes] if len(horizons) == 1 else list(axes)
         for ax, h in zip(axes, horizons, strict=True):
@@ -139,11 +144,14 @@ def horizon_comparison_table(
         "|---|---|---|---|---|---|---|",
     ]
     for a, b in zip(errors, other, strict=True):
-        x_ratio = b.x_mse / a.x_mse if a.x_mse else float("nan")
         r_ratio = b.reward_mse / a.reward_mse if a.reward_mse else float("nan")
+        if a.x_mse is None or b.x_mse is None:  # a state without an x position
+            x_cells = "n/a | n/a | n/a"
+        else:
+            x_ratio = b.x_mse / a.x_mse if a.x_mse else float("nan")
+            x_cells = f"{a.x_mse:.4g} | {b.x_mse:.4g} | {x_ratio:.3g}"
         lines.append(
-            f"| {a.horizon} | {a.x_mse:.4g} | {b.x_mse:.4g} | {x_ratio:.3g} "
-            f"| {a.reward_mse:.4g} | {b.reward_mse:.4g} | {r_ratio:.3g} |"
+            f"| {a.horizon} | {x_cells} | {a.reward_mse:.4g} | {b.reward_mse:.4g} | {r_ratio:.3g} |"
         )
     return "\n".join(lines)
 
@@ -240,7 +248,9 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
     )
     state_dim = env.full_observation_spec_unbatched[STATE_KEY].shape[-1]
     action_dim = env.full_action_spec_unbatched[env.action_key].shape[-1]
-    model = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes))
+    # the env's action range (no clip to another: Pendulum's is [-2, 2])
+    bounds = dict(zip(("action_low", "action_high"), action_bounds(env), strict=True))
+    model = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes), **bounds)
     initial_weights = copy.deepcopy(model.state_dict()) if compare is not None else None
 
     def fit_and_evaluate(
@@ -287,7 +297,9 @@ def run_fit_world_model(cfg: Any, out_dir: Path) -> dict[str, Any]:
         "horizon_table": table,
     }
     if compare is not None:
-        other = DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes))
+        other = DeltaDynamicsModel(
+            state_dim, action_dim, hidden_sizes=tuple(wm.hidden_sizes), **bounds
+        )
         other.load_state_dict(initial_weights)
         other_history, other_errors, other_table = fit_and_evaluate(other, compare, "_multistep")
         labels = {"label": f"k={fit_kwargs['multi_step']}", "other_label": f"k={compare}"}

@@ -1,5 +1,5 @@
 from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
-from torchrl_mbmf.envs.factory import env_metadata, make_env
+from torchrl_mbmf.envs.factory import action_bounds, env_metadata, make_env
 from torchrl_mbmf.envs.gym_state import make_gym_state_env
 from torchrl_mbmf.envs.half_cheetah import HALF_CHEETAH_ID, make_half_cheetah_env
 from torchrl_mbmf.envs.keys import (
@@ -13,6 +13,7 @@ from torchrl_mbmf.envs.keys import (
 )
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.envs.physics_info import PhysicsInfo
+from torchrl_mbmf.envs.tasks import TASK_LAYOUTS, TaskLayout, task_layout
 from torchrl_mbmf.envs.terminations import (
     TerminationFn,
     termination_rule,
@@ -37,6 +38,7 @@ __all__ = [
     "OBSERVATION_KEY",
     "REWARDS",
     "STATE_KEY",
+    "TASK_LAYOUTS",
     "DefaultReward",
     "EnsembleLearnedDynamicsEnv",
     "HeadPenReward",
@@ -44,12 +46,15 @@ __all__ = [
     "PhysicsInfo",
     "ShinPenReward",
     "StateToObservation",
+    "TaskLayout",
     "TerminationFn",
+    "action_bounds",
     "env_metadata",
     "make_env",
     "make_gym_state_env",
     "make_half_cheetah_env",
     "make_reward",
+    "task_layout",
     "termination_rule",
     "termination_rule_of_env",
 ]

@@ -71,6 +71,9 @@ def make_gym_state_env(
     Returns:
         A :class:`~torchrl.envs.TransformedEnv`.
 
+    Raises:
+        ValueError: ``num_envs < 1``, or ``state_key == observation_key``.
+
     Examples:
         >>> from torchrl.envs.utils import check_env_specs
         >>> from torchrl_mbmf.envs import make_gym_state_env
@@ -81,6 +84,11 @@ def make_gym_state_env(
     """
     if num_envs < 1:
         raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    if state_key == observation_key:
+        raise ValueError(
+            f"state_key and observation_key must differ (both {state_key!r}): the policy "
+            "observation is written from the state under its own key"
+        )
 
     def make_one() -> gym.Env:
         with quiet_mujoco_warnings():

@@ -19,6 +19,7 @@ from torchrl_mbmf.envs.keys import (
     STATE_KEY,
 )
 from torchrl_mbmf.envs.physics_info import HALF_CHEETAH_JOINTS, PhysicsInfo
+from torchrl_mbmf.envs.tasks import TASK_LAYOUTS
 from torchrl_mbmf.envs.transforms.rewards import REWARDS, make_reward
 
 #: Gymnasium id of the environment the thesis' experiments run on (v3 in the thesis; v5 here).
@@ -60,7 +61,8 @@ def make_half_cheetah_env(
         **gym_kwargs: passed to ``gym.make`` (for example ``max_episode_steps``).
 
     Raises:
-        ValueError: for an unknown ``reward`` (the message lists the valid names).
+        ValueError: for an unknown ``reward`` (the message lists the valid names), or
+            ``exclude_current_positions_from_observation=True`` (the state starts with x).
 
     Examples:
         >>> from torchrl_mbmf.envs import make_half_cheetah_env
@@ -80,22 +82,18 @@ def make_half_cheetah_env(
         JOINT_VELOCITIES_KEY: (n_joints,),
         ACTUATOR_TORQUES_KEY: (n_joints,),
     }
-    gym_kwargs.setdefault("exclude_current_positions_from_observation", False)
-    if gym_kwargs["exclude_current_positions_from_observation"]:
-        raise ValueError(
-            "exclude_current_positions_from_observation must be False: the thesis state "
-            "starts with the x position"
-        )
+    # the thesis state: the x position first (Gymnasium's positions kept), hidden from the policy
+    layout = TASK_LAYOUTS[HALF_CHEETAH_ID]
     return make_gym_state_env(
         HALF_CHEETAH_ID,
         num_envs=num_envs,
         seed=seed,
         device=device,
-        drop_state_dims=(0,),
+        drop_state_dims=layout.hidden_dims,
         info_specs=info_specs,
         wrap=PhysicsInfo,
         transforms=[reward_transform],
         state_key=state_key,
         observation_key=observation_key,
-        **gym_kwargs,
+        **layout.make_kwargs(gym_kwargs),
     )

@@ -13,6 +13,7 @@ from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.model_based import ModelBasedEnvBase
 
+from torchrl_mbmf.envs.factory import flat_transforms
 from torchrl_mbmf.envs.keys import OBSERVATION_KEY, STATE_KEY
 from torchrl_mbmf.envs.terminations import (
     NeverTerminates,
@@ -32,7 +33,7 @@ def _find_state_to_observation(
     env: EnvBase, state_key: NestedKey, observation_key: NestedKey
 ) -> StateToObservation | None:
     while isinstance(env, TransformedEnv):
-        for t in env.transform:
+        for t in flat_transforms(env.transform):
             if (
                 isinstance(t, StateToObservation)
                 and t.in_keys[0] == state_key

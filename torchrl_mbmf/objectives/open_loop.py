@@ -10,15 +10,26 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import torch
 from torch import nn
 
+from torchrl_mbmf.envs.tasks import task_layout
+
 if TYPE_CHECKING:
     from torchrl_mbmf.data.transitions import TransitionDataset
 
-__all__ = ["HorizonError", "horizon_windows", "multistep_mse", "open_loop_rollout"]
+__all__ = [
+    "HorizonError",
+    "horizon_windows",
+    "multistep_mse",
+    "open_loop_rollout",
+    "resolve_x_index",
+]
+
+#: ``x_index`` value meaning "where the dataset's task keeps its x position".
+TASK_X = "task"
 
 
 @dataclass
@@ -31,9 +42,10 @@ class HorizonError:
     Attributes:
         horizon: rollout length ``h``.
         num_rollouts: number of start states.
-        x_mse: MSE of the x position averaged over the ``h`` steps (thesis table 8).
+        x_mse: MSE of the x position averaged over the ``h`` steps (thesis table 8), or
+            ``None`` for a state without an x position.
         reward_mse: MSE of the reward averaged over the ``h`` steps (thesis table 9).
-        x_mse_final: MSE of the x position at step ``h``.
+        x_mse_final: MSE of the x position at step ``h`` (``None`` without an x position).
         reward_mse_final: MSE of the reward at step ``h``.
         state_mse: per-state-dimension MSE averaged over the ``h`` steps.
 
@@ -45,9 +57,9 @@ class HorizonError:
 
     horizon: int
     num_rollouts: int
-    x_mse: float
+    x_mse: float | None
     reward_mse: float
-    x_mse_final: float
+    x_mse_final: float | None
     reward_mse_final: float
     state_mse: list[float]
 
@@ -140,6 +152,49 @@ def open_loop_rollout(
     return torch.stack(states, 1), torch.stack(rewards, 1)
 
 
+def resolve_x_index(
+    data: TransitionDataset, x_index: int | Literal["task"] | None = TASK_X
+) -> int | None:
+    """The state index of the x position in ``data``'s states.
+
+    Args:
+        data: real transitions (their ``metadata["env_id"]`` names the task).
+        x_index: an index, ``None`` (the state has no x position), or ``"task"``: the x index
+            of the task's layout (:func:`~torchrl_mbmf.envs.task_layout`: ``0`` for HalfCheetah,
+            Hopper, Walker2d and Ant as :func:`~torchrl_mbmf.envs.make_env` builds them,
+            ``None`` for Pendulum); ``None`` for a task without a known layout or states of
+            another size than the layout's (for example Hopper's observation without its x
+            position, from a plain ``GymEnv``). Defaults to ``"task"``.
+
+    Returns:
+        The index, or ``None``.
+
+    Raises:
+        ValueError: ``x_index`` is neither an index of the state nor ``None`` nor ``"task"``.
+
+    Examples:
+        >>> from torchrl_mbmf.data import TransitionDataset
+        >>> from torchrl_mbmf.objectives.open_loop import resolve_x_index
+        >>> hopper = TransitionDataset({"env_id": "Hopper-v5", "reward": {"name": "default"}})
+        >>> resolve_x_index(hopper), resolve_x_index(hopper, None), resolve_x_index(hopper, 2)
+        (0, None, 2)
+    """
+    if x_index == TASK_X:
+        layout = task_layout(str(data.metadata.get("env_id")))
+        if layout is None:
+            return None
+        if len(data) and data.tensors().get(data.state_key).shape[-1] != layout.state_dim:
+            return None  # another layout (e.g. a plain GymEnv without the positions)
+        return layout.x_index
+    if x_index is None:
+        return None
+    if isinstance(x_index, bool) or not isinstance(x_index, int) or x_index < 0:
+        raise ValueError(
+            f"x_index must be a state index (an int >= 0), None or {TASK_X!r}, got {x_index!r}"
+        )
+    return x_index
+
+
 def multistep_mse(
     model: nn.Module,
     data: TransitionDataset,
@@ -147,7 +202,7 @@ def multistep_mse(
     horizons: Sequence[int] = (5, 10, 25),
     num_starts: int | None = 2000,
     seed: int = 0,
-    x_index: int = 0,
+    x_index: int | Literal["task"] | None = TASK_X,
     start_from: int = 0,
 ) -> list[HorizonError]:
     """Open-loop ``h``-step prediction error from real start states, for each horizon.
@@ -164,7 +219,10 @@ def multistep_mse(
         horizons: rollout lengths. Defaults to ``(5, 10, 25)`` (thesis experiment 1).
         num_starts: number of start states sampled, or ``None`` for all. Defaults to ``2000``.
         seed: seed of the sampling. Defaults to ``0``.
-        x_index: state index of the x position. Defaults to ``0``.
+        x_index: state index of the x position, ``None`` for a state without one (the x
+            errors are then ``None``), or ``"task"``: the index of the dataset's task
+            (:func:`resolve_x_index`; HalfCheetah's and Hopper's x is ``0``, Pendulum has none).
+            Defaults to ``"task"``.
         start_from: only windows starting at this row or later (for example the transitions
             collected after the model's fit: held-out data of the policy's own episodes).
             Defaults to ``0``.
@@ -173,7 +231,8 @@ def multistep_mse(
         One :class:`HorizonError` per horizon.
 
     Raises:
-        ValueError: if a horizon is < 1 or no episode is long enough.
+        ValueError: if a horizon is < 1, no episode is long enough, or ``x_index`` is not an
+            index of the state.
 
     Examples:
         >>> from torchrl_mbmf.objectives.open_loop import multistep_mse
@@ -183,15 +242,18 @@ def multistep_mse(
         >>> data = collect_random_transitions(make_gym_state_env("Pendulum-v1"), 100, seed=0)
         >>> errors = multistep_mse(DeltaDynamicsModel(3, 1, hidden_sizes=(8,)), data,
         ...                        horizons=(1, 5))
-        >>> [e.horizon for e in errors]
-        [1, 5]
+        >>> [e.horizon for e in errors], errors[0].x_mse  # Pendulum's state has no x
+        ([1, 5], None)
     """
     if not horizons or min(horizons) < 1:
         raise ValueError(f"horizons must be >= 1, got {tuple(horizons)}")
+    x = resolve_x_index(data, x_index)
     h_max = max(horizons)
     state0, actions, real_states, real_rewards = horizon_windows(
         data, h_max, num_starts=num_starts, seed=seed, start_from=start_from
     )
+    if x is not None and x >= state0.shape[-1]:
+        raise ValueError(f"x_index={x} is not an index of the {state0.shape[-1]}-dim state")
     pred_states, pred_rewards = open_loop_rollout(model, state0, actions)
     state_err = (pred_states - real_states).pow(2)  # [S, H, d]
     reward_err = (pred_rewards - real_rewards).pow(2)  # [S, H]
@@ -201,9 +263,9 @@ def multistep_mse(
             HorizonError(
                 horizon=int(h),
                 num_rollouts=int(state0.shape[0]),
-                x_mse=float(state_err[:, :h, x_index].mean()),
+                x_mse=None if x is None else float(state_err[:, :h, x].mean()),
                 reward_mse=float(reward_err[:, :h].mean()),
-                x_mse_final=float(state_err[:, h - 1, x_index].mean()),
+                x_mse_final=None if x is None else float(state_err[:, h - 1, x].mean()),
                 reward_mse_final=float(reward_err[:, h - 1].mean()),
                 state_mse=state_err[:, :h].mean((0, 1)).tolist(),
             )

@@ -154,6 +154,10 @@ class RunFolderLock:
         self._file = file
         return self
 
+    def __del__(self) -> None:
+        # A lock dropped without release (a Trainer built but never trained) is released.
+        self.release()
+
     def release(self) -> None:
         """Releases the lock (the lock file stays, naming no live holder)."""
         if self._file is not None:

@@ -20,7 +20,7 @@ from torchrl.envs import EnvBase
 from torchrl_mbmf.checks import Setting, check_arguments, settings
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
-from torchrl_mbmf.envs.factory import env_metadata
+from torchrl_mbmf.envs.factory import action_bounds, env_metadata
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel, check_hidden_sizes
@@ -48,8 +48,10 @@ def make_world_model(
 ) -> DeltaDynamicsModel | EnsembleDeltaDynamicsModel:
     """The world-model network of the ``world_model`` group's architecture keys, sized from ``env``.
 
+    Its state and action sizes and its action range are the env's (:func:`action_bounds`).
+
     Args:
-        env: the real env (state and action sizes).
+        env: the real env (state and action sizes, action range; a float32 state).
 
     Keyword Args:
         hidden_sizes: hidden layers (checked by the network's constructor).
@@ -61,12 +63,24 @@ def make_world_model(
     Examples:
         >>> from torchrl_mbmf.envs import make_env
         >>> from torchrl_mbmf.trainers.planning import make_world_model
-        >>> type(make_world_model(make_env("Pendulum-v1"), hidden_sizes=[8])).__name__
-        'DeltaDynamicsModel'
+        >>> model = make_world_model(make_env("Pendulum-v1"), hidden_sizes=[8])
+        >>> type(model).__name__, model.action_low, model.action_high
+        ('DeltaDynamicsModel', -2.0, 2.0)
+
+    Raises:
+        ValueError: the env's state is not float32, or its action spec has no single range.
     """
     check_arguments(settings(positive_int=("ensemble_size",), flag=("probabilistic",)), locals())
-    state_dim = env.full_observation_spec_unbatched[STATE_KEY].shape[-1]
+    state_spec = env.full_observation_spec_unbatched[STATE_KEY]
+    if state_spec.dtype != torch.float32:
+        raise ValueError(
+            f"the env's {STATE_KEY!r} is {state_spec.dtype}; the world model works in float32: "
+            "add torchrl.envs.DoubleToFloat() to the env (this package's builders do)"
+        )
+    state_dim = state_spec.shape[-1]
     action_dim = env.full_action_spec_unbatched[env.action_key].shape[-1]
+    # the model's action range is the env's (no silent clip: Pendulum's is [-2, 2])
+    low, high = action_bounds(env)
     hidden = check_hidden_sizes(hidden_sizes)
     if ensemble_size > 1:
         return EnsembleDeltaDynamicsModel(
@@ -75,8 +89,12 @@ def make_world_model(
             num_members=ensemble_size,
             hidden_sizes=hidden,
             probabilistic=probabilistic,
+            action_low=low,
+            action_high=high,
         )
-    return DeltaDynamicsModel(state_dim, action_dim, hidden_sizes=hidden)
+    return DeltaDynamicsModel(
+        state_dim, action_dim, hidden_sizes=hidden, action_low=low, action_high=high
+    )
 
 
 def make_planner(

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
+from typing import Literal
 
 import torch
 from tensordict import TensorDict
@@ -140,8 +141,13 @@ def heldout_open_loop_errors(
     horizons: tuple[int, ...] = HELDOUT_HORIZONS,
     num_starts: int = 2000,
     seed: int = 0,
+    x_index: int | Literal["task"] | None = "task",
 ) -> dict[str, float]:
     """Open-loop x-position and reward MSE on the dataset's rows from ``since`` on.
+
+    The x position is the task's by default
+    (:func:`~torchrl_mbmf.objectives.open_loop.resolve_x_index`); a task without one
+    (Pendulum) records the reward errors only.
 
     Uses its own random generator (the run's random state is untouched, so recording these
     errors changes no training number).
@@ -155,11 +161,13 @@ def heldout_open_loop_errors(
         horizons: rollout lengths. Defaults to :data:`HELDOUT_HORIZONS`.
         num_starts: start states sampled (all if fewer). Defaults to ``2000``.
         seed: seed of the sampling. Defaults to ``0``.
+        x_index: the x position's state index, ``None`` or ``"task"`` (as
+            :func:`~torchrl_mbmf.objectives.open_loop.multistep_mse`). Defaults to ``"task"``.
 
     Returns:
         ``{"model/heldout_x_mse_h<h>": ..., "model/heldout_reward_mse_h<h>": ...,
-        "model/heldout_starts": ...}``, or ``{}`` when no episode has ``max(horizons)`` steps
-        after ``since``.
+        "model/heldout_starts": ...}`` (no x entries for a task without an x position), or
+        ``{}`` when no episode has ``max(horizons)`` steps after ``since``.
 
     Examples:
         >>> from torchrl_mbmf.data import collect_random_transitions
@@ -176,12 +184,19 @@ def heldout_open_loop_errors(
         return {}
     try:
         errors = multistep_mse(
-            model, dataset, horizons=horizons, num_starts=num_starts, seed=seed, start_from=since
+            model,
+            dataset,
+            horizons=horizons,
+            num_starts=num_starts,
+            seed=seed,
+            x_index=x_index,
+            start_from=since,
         )
     except ValueError:  # no episode long enough after `since`
         return {}
     out = {"model/heldout_starts": float(errors[0].num_rollouts)}
     for e in errors:
-        out[f"model/heldout_x_mse_h{e.horizon}"] = e.x_mse
+        if e.x_mse is not None:  # the task's state has an x position
+            out[f"model/heldout_x_mse_h{e.horizon}"] = e.x_mse
         out[f"model/heldout_reward_mse_h{e.horizon}"] = e.reward_mse
     return out
