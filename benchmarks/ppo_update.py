@@ -68,7 +68,7 @@ def _breakdown(fused: FusedPPOUpdate, batch, repeats: int) -> list[dict[str, obj
     data = fused._prepare(batch, True)
     flat = fused._flat_adam()
     grads = {id(p): flat.views["grad"][i] for i, p in enumerate(fused.params)}
-    scalars = fused._scalars()
+    scalars = fused.grads.scalars()
     mb = {k: v[: fused.minibatch_size] for k, v in data.items()}
     mb["advantage"] = mb["advantage"].squeeze(-1)
     state = [p.detach().clone() for p in fused.params]
@@ -98,7 +98,7 @@ def _breakdown(fused: FusedPPOUpdate, batch, repeats: int) -> list[dict[str, obj
         ("per-epoch gather (x epochs)", per_iter(shuffle, 1) * fused.epochs),
         (
             "losses + hand-written gradients (x steps)",
-            per_iter(lambda: fused._manual_grads(mb, grads, scalars), 50),
+            per_iter(lambda: fused.grads.manual(mb, grads, scalars), 50),
         ),
         (
             "grad clip + Adam on the flat buffer (x steps)",

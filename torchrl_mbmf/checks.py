@@ -1,4 +1,8 @@
-"""Checks of settings (numbers, input files, output paths) for the package and its recipes."""
+"""The one validation system: :class:`Setting` (a value's type and range) and its helpers.
+
+The modules, the losses, the fitters, the config and the recipes check values here (numbers,
+input files, output paths); an error names the key, what was expected and the value.
+"""
 
 from __future__ import annotations
 
@@ -6,14 +10,206 @@ import difflib
 import math
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ConfigError", "check_multi_step", "check_multi_step_weight", "check_number"]
+from omegaconf import ListConfig
+
+__all__ = [
+    "KINDS",
+    "ConfigError",
+    "Setting",
+    "TrainingDivergedError",
+    "check_arguments",
+    "check_finite",
+    "check_input_file",
+    "check_multi_step",
+    "check_multi_step_weight",
+    "check_no_added_keys",
+    "check_number",
+    "check_output_path",
+    "check_recipe_overrides",
+    "choice",
+    "settings",
+]
 
 
 class ConfigError(ValueError):
     """A training config value is invalid; the message names the key and the allowed values."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    """The type and range of one argument (or config setting).
+
+    Args:
+        kind: ``"int"``, ``"float"``, ``"bool"``, ``"str"``, ``"choice"``, ``"dict"`` (not
+            checked here) or ``"sizes"`` (a list of integers >= 1, possibly empty).
+        low: smallest allowed value, or ``None``. Defaults to ``None``.
+        high: largest allowed value, or ``None``. Defaults to ``None``.
+        low_open: ``low`` itself is excluded. Defaults to ``False``.
+        high_open: ``high`` itself is excluded. Defaults to ``False``.
+        choices: the allowed values of a ``"choice"``. Defaults to none.
+        nullable: ``null`` is allowed too. Defaults to ``False``.
+        required: the key must be present (the trainer reads it without a default).
+            Defaults to ``True``.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import Setting
+        >>> Setting("float", 0, 1, low_open=True).check("gamma", 0.99)
+        >>> try:
+        ...     Setting("float", 0, 1, low_open=True).check("gamma", 5)
+        ... except ValueError as err:
+        ...     print(err)
+        gamma must be a number in (0, 1], got 5
+    """
+
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple[Any, ...] = ()
+    nullable: bool = False
+    required: bool = True
+
+    def describe(self) -> str:
+        """What the setting must be, in words (``"a number in (0, 1]"``)."""
+        what = {
+            "int": "an integer",
+            "float": "a number",
+            "bool": "true or false",
+            "str": "a string",
+            "sizes": "a list of integers >= 1",
+        }.get(self.kind, "")
+        if self.kind in ("int", "float"):
+            if self.low is not None and self.high is not None:
+                left = "(" if self.low_open else "["
+                right = ")" if self.high_open else "]"
+                what += f" in {left}{_fmt(self.low)}, {_fmt(self.high)}{right}"
+            elif self.low is not None:
+                what += f" {'>' if self.low_open else '>='} {_fmt(self.low)}"
+            elif self.high is not None:
+                what += f" {'<' if self.high_open else '<='} {_fmt(self.high)}"
+            elif self.kind == "float":
+                what = "a finite number"
+        return f"null or {what}" if self.nullable else what
+
+    def check(self, key: str, value: Any) -> None:
+        """Raises :class:`ConfigError` naming ``key`` and ``value`` unless the value fits."""
+        if (value is None and self.nullable) or self.kind == "dict":
+            return
+        if self.kind == "choice":
+            if value not in self.choices:
+                raise ConfigError(
+                    f"{key}={value!r} is not supported; allowed: {list(self.choices)}"
+                )
+            return
+        if not self.fits(value):
+            raise ConfigError(f"{key} must be {self.describe()}, got {value!r}")
+
+    def fits(self, value: Any) -> bool:
+        """Whether ``value`` has this type and lies in this range (``null`` not included).
+
+        Args:
+            value: the value.
+        """
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        if self.kind == "str":
+            return isinstance(value, str) and bool(value)
+        if self.kind == "sizes":
+            return (
+                isinstance(value, Sequence | ListConfig)
+                and not isinstance(value, str)
+                and all(_is_int(h) and h >= 1 for h in value)
+            )
+        if self.kind == "int" and not _is_int(value):
+            return False
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return False
+        if not math.isfinite(value):
+            return False
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return self.high is None or (value < self.high if self.high_open else value <= self.high)
+
+
+def _fmt(bound: float) -> str:
+    return str(bound) if isinstance(bound, int) else f"{bound:g}"
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+#: The named ranges of :func:`settings`.
+KINDS: dict[str, Setting] = {
+    "positive_int": Setting("int", 1),
+    "count": Setting("int", 0),
+    "positive": Setting("float", 0, low_open=True),
+    "non_negative": Setting("float", 0),
+    "unit": Setting("float", 0, 1, low_open=True),
+    "probability": Setting("float", 0, 1),
+    "fraction": Setting("float", 0, 1, low_open=True, high_open=True),
+    "finite": Setting("float"),
+    "sizes": Setting("sizes"),
+    "flag": Setting("bool"),
+}
+
+
+def settings(**kinds: Sequence[str]) -> dict[str, Setting]:
+    """``{argument: Setting}`` from argument names grouped by their :data:`KINDS` entry.
+
+    Args:
+        **kinds: for each kind (``positive_int``, ``count``, ``positive``, ``non_negative``,
+            ``unit`` (0, 1], ``probability`` [0, 1], ``fraction`` (0, 1), ``finite``,
+            ``sizes``, ``flag``), the names of the arguments of that kind.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import settings
+        >>> settings(unit=("gamma",))["gamma"].describe()
+        'a number in (0, 1]'
+    """
+    return {name: KINDS[kind] for kind, names in kinds.items() for name in names}
+
+
+def choice(*choices: Any) -> Setting:
+    """The setting whose value must be one of ``choices``.
+
+    Args:
+        choices: the allowed values.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import choice
+        >>> choice("fused", "stock").check("update", "stock")
+    """
+    return Setting("choice", choices=tuple(choices))
+
+
+def check_arguments(specs: Mapping[str, Setting], values: Mapping[str, Any]) -> None:
+    """Checks each argument of ``specs`` present in ``values`` (a constructor's ``locals()``).
+
+    Args:
+        specs: ``{argument: Setting}``.
+        values: the arguments' values.
+
+    Raises:
+        ConfigError: naming the first argument that does not fit, its value and what was
+            expected.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import Setting, check_arguments
+        >>> try:
+        ...     check_arguments({"epochs": Setting("int", 1)}, {"epochs": True})
+        ... except ValueError as err:
+        ...     print(err)
+        epochs must be an integer >= 1, got True
+    """
+    for name, setting in specs.items():
+        if name in values:
+            setting.check(name, values[name])
 
 
 def check_number(
@@ -46,9 +242,7 @@ def check_number(
         ...     print(err)
         multi_step_weight must be a finite number >= 0, got nan
     """
-    kind = int if integer else int | float
-    ok = not isinstance(value, bool) and isinstance(value, kind)
-    if not ok or not math.isfinite(value) or value < minimum:
+    if not Setting("int" if integer else "float", minimum).fits(value):
         what = "an integer" if integer else "a finite number"
         bound = int(minimum) if float(minimum).is_integer() else minimum
         raise ValueError(f"{key} must be {what} >= {bound}{note}, got {value!r}")
@@ -240,12 +434,32 @@ def check_recipe_overrides(cfg: Any) -> None:
     check_no_added_keys(list(HydraConfig.get().overrides.task), known)  # type: ignore[arg-type]
 
 
-__all__ = [
-    "check_input_file",
-    "check_multi_step",
-    "check_multi_step_weight",
-    "check_no_added_keys",
-    "check_number",
-    "check_output_path",
-    "check_recipe_overrides",
-]
+class TrainingDivergedError(RuntimeError):
+    """A logged loss, return or statistic became NaN or infinite; the message names it."""
+
+
+def check_finite(metrics: Mapping[str, float], step: int) -> None:
+    """Raises if any scalar is NaN or infinite (one ``math.isfinite`` per scalar: cheap).
+
+    Args:
+        metrics: name -> value, as logged.
+        step: the real-step count the values belong to (named in the message).
+
+    Raises:
+        TrainingDivergedError: naming the first non-finite quantity, its value and the step.
+
+    Examples:
+        >>> from torchrl_mbmf.checks import TrainingDivergedError, check_finite
+        >>> check_finite({"loss/loss_objective": 0.1}, step=2048)
+        >>> try:
+        ...     check_finite({"loss/loss_critic": float("nan")}, step=4096)
+        ... except TrainingDivergedError as err:
+        ...     print(err)
+        loss/loss_critic=nan at real step 4096: the run diverged (not logged, not checkpointed)
+    """
+    for name, value in metrics.items():
+        if not math.isfinite(value):
+            raise TrainingDivergedError(
+                f"{name}={value} at real step {step}: the run diverged (not logged, not "
+                "checkpointed)"
+            )

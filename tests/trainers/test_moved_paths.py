@@ -43,6 +43,7 @@ MOVED = [
     ("torchrl_mbmf.trainers.resume", "write_run_record", "torchrl_mbmf.runs.layout"),
     ("torchrl_mbmf.trainers.resume_logs", "cut_csv_logs", "torchrl_mbmf.runs.logs"),
     ("torchrl_mbmf.trainers.export", "variant_tag", "torchrl_mbmf.runs.export"),
+    ("torchrl_mbmf.trainers.guards", "check_finite", "torchrl_mbmf.checks"),
     ("torchrl_mbmf.trainers.ppo", "FusedPPOUpdate", "torchrl_mbmf.objectives.fused_ppo"),
     ("torchrl_mbmf.trainers.sac", "sac_update_step", "torchrl_mbmf.objectives.fused_sac"),
     ("torchrl_mbmf.trainers.sac", "ReplaySampler", "torchrl_mbmf.data.replay"),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from omegaconf import OmegaConf
 
-from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
+from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 
 CFG = {
     "planning_updates": 2,
@@ -14,8 +14,8 @@ CFG = {
 }
 
 
-def _progress(phase: Phase, steps: int = 0, updates: int = 0) -> dict:
-    return {"phase": phase.value, "real_steps": steps, "updates": updates, "next_refit": 0}
+def _progress(phase: Phase, steps: int = 0, updates: int = 0) -> Progress:
+    return Progress(phase=phase.value, real_steps=steps, updates=updates)
 
 
 @pytest.mark.parametrize(
@@ -43,31 +43,62 @@ def test_ppo_mpc_plans_refits_by_updates_then_switches():
     assert schedule.actor(progress) is Actor.RANDOM
     schedule.start_planning(progress)
     assert schedule.actor(progress) is Actor.PLANNER
-    progress["updates"] = 1
+    progress.updates = 1
     assert not schedule.refit_due(progress, planned=True)
     assert not schedule.round_over(progress, Actor.PLANNER)
-    progress["updates"] = 2  # planning is over: no refit, the round ends, the switch is due
+    progress.updates = 2  # planning is over: no refit, the round ends, the switch is due
     assert not schedule.refit_due(progress, planned=True)
     assert schedule.round_over(progress, Actor.PLANNER) and schedule.switch_due(progress)
     schedule.start_model_free(progress)
-    assert schedule.actor(progress) is Actor.AGENT and progress["switch_step"] == 0
+    assert schedule.actor(progress) is Actor.AGENT and progress.switch_step == 0
 
 
 def test_sac_mpc_refits_every_steps_and_sac_starts_random():
     schedule = PhaseSchedule.from_config(OmegaConf.create({"method": "sac_mpc", **CFG}))
     progress = _progress(Phase.RANDOM, steps=300)
     schedule.start_planning(progress)
-    assert progress["next_refit"] == 400
-    progress["real_steps"] = 420
-    assert schedule.refit_due(progress, planned=True) and progress["next_refit"] == 500
+    assert progress.next_refit == 400
+    progress.real_steps = 420
+    assert schedule.refit_due(progress, planned=True) and progress.next_refit == 500
     assert not schedule.switch_due(progress)
     sac = PhaseSchedule.from_config(OmegaConf.create({"method": "sac", **CFG}))
     progress = _progress(Phase.MODEL_FREE, steps=0)
     assert sac.actor(progress) is Actor.RANDOM and sac.round_over(progress, Actor.RANDOM)
-    progress["real_steps"] = 50
+    progress.real_steps = 50
     assert sac.actor(progress) is Actor.AGENT
 
 
 def test_bad_schedule_names_the_value():
     with pytest.raises(ValueError, match="planning_updates must be an integer >= 1, got 0"):
         PhaseSchedule(model_based=True, planning_updates=0)
+
+
+def test_progress_round_trips_an_old_dict_checkpoint():
+    # a progress record as checkpoints stored it before Progress, with an entry it does not know
+    old = {
+        "real_steps": 800,
+        "random_steps": 200,
+        "updates": 3,
+        "phase": "planning",
+        "episodes": 4,
+        "last_returns": [1.0, 2.0],
+        "next_eval": 1000,
+        "next_checkpoint": 1200,
+        "next_refit": 0,
+        "switch_step": None,
+        "fingerprint": {"seed": 0},
+        "config": {"seed": 0},
+        "last_fit_transitions": 600,
+        "future_entry": 7,
+    }
+    progress = Progress()
+    progress.load_dict(old)
+    assert progress.real_steps == 800 and progress.phase == "planning"
+    assert progress.last_fit_transitions == 600 and progress.disagreement_threshold is None
+    assert progress.extra == {"future_entry": 7} and progress["future_entry"] == 7
+    assert progress.to_dict() == old
+    # a checkpoint older than saved configs has no "config": it stays unset and unwritten
+    del old["config"]
+    progress.load_dict(old)
+    assert progress.config is None and progress.get("config") is None
+    assert "config" not in progress.to_dict()

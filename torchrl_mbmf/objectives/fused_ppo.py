@@ -20,7 +20,7 @@ from torchrl.objectives.value.functional import (
     vec_generalized_advantage_estimate,
 )
 
-__all__ = ["FusedPPOUpdate", "ppo_update"]
+__all__ = ["FusedPPOUpdate", "PPOAdvantage", "PPOGradients", "PlainPPONetworks", "ppo_update"]
 
 #: Loss entries averaged into the logged statistics.
 PPO_STATS: tuple[str, ...] = ("loss_objective", "loss_critic", "loss_entropy", "kl_approx")
@@ -100,50 +100,380 @@ def ppo_update(
     return {key: value / steps for key, value in sums.items()}
 
 
+class PlainPPONetworks:
+    """The actor and critic of a ``ClipPPOLoss`` as plain tensor layers.
+
+    Reads the networks of :func:`~torchrl_mbmf.modules.make_ppo_actor_critic` (a loc network
+    followed by ``AddStateIndependentNormalScale``, a ``TanhNormal`` or ``IndependentNormal``
+    distribution, a critic on one observation key) and runs them on the loss's own parameters.
+
+    Args:
+        loss: the stock ``ClipPPOLoss``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.objectives import ClipPPOLoss
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> actor, critic = make_ppo_actor_critic(make_env("Pendulum-v1"), hidden_sizes=(8,))
+        >>> nets = PlainPPONetworks(ClipPPOLoss(actor, critic))
+        >>> nets.value(torch.zeros(2, 3)).shape, nets.tanh
+        (torch.Size([2, 1]), True)
+    """
+
+    def __init__(self, loss: ClipPPOLoss) -> None:
+        self.value_key = loss.tensor_keys.value
+        policy, dist_module = _policy_parts(loss.actor_network)
+        self.observation_key = policy.in_keys[0]
+        net = policy.module
+        if not (
+            isinstance(net, nn.Sequential) and isinstance(net[-1], AddStateIndependentNormalScale)
+        ):
+            raise ValueError(
+                "FusedPPOUpdate expects the actor's loc/scale module to be "
+                "Sequential(loc_net, AddStateIndependentNormalScale) (see make_ppo_actor_critic)"
+            )
+        actor_owned = _owned_params(loss.actor_network, loss.actor_network_params)
+        self.loc_layers = _plain_layers(net[0] if len(net) == 2 else net[:-1], actor_owned)
+        self.scale_module = net[-1]
+        self.log_std = actor_owned[id(net[-1].state_independent_scale)]
+        self._scale_map = mappings(self.scale_module.scale_mapping)
+        critic = loss.critic_network
+        if list(critic.in_keys) != [self.observation_key] or list(critic.out_keys) != [
+            self.value_key
+        ]:
+            raise ValueError(
+                f"FusedPPOUpdate expects a critic reading {[self.observation_key]} and writing "
+                f"{[self.value_key]}, got in_keys={critic.in_keys} out_keys={critic.out_keys}"
+            )
+        critic_owned = _owned_params(critic, loss.critic_network_params)
+        self.value_layers = _plain_layers(critic.module, critic_owned)
+        dist_class = dist_module.distribution_class
+        kwargs = dict(dist_module.distribution_kwargs or {})
+        if issubclass(dist_class, TanhNormal):
+            if kwargs.get("tanh_loc", False) or kwargs.get("event_dims", 1) != 1:
+                raise ValueError("FusedPPOUpdate expects TanhNormal(tanh_loc=False, event_dims=1)")
+            probe = dist_class(torch.zeros(1), torch.ones(1), **kwargs)
+            self.transform = probe.transforms[0]
+            self.tanh_only = isinstance(self.transform, D.TanhTransform)
+            self.tanh = True
+        elif issubclass(dist_class, IndependentNormal):
+            if kwargs.get("tanh_loc", False) or kwargs.get("event_dim", 1) != 1:
+                raise ValueError(
+                    "FusedPPOUpdate expects IndependentNormal(tanh_loc=False, event_dim=1)"
+                )
+            self.tanh = False
+        else:
+            raise ValueError(
+                "FusedPPOUpdate supports TanhNormal and IndependentNormal actors, got "
+                f"{dist_class.__name__}"
+            )
+        self.loc_spec = _manual_spec(self.loc_layers)
+        self.value_spec = _manual_spec(self.value_layers)
+
+    def differentiable_by_hand(self, params: list[Tensor]) -> bool:
+        """Whether the hand-written gradients cover exactly ``params`` (plain layers, exp scale).
+
+        Args:
+            params: the loss's parameters.
+        """
+        if self.loc_spec is None or self.value_spec is None:
+            return False
+        covered = {
+            id(t)
+            for spec in (self.loc_spec, self.value_spec)
+            for layer in spec
+            if isinstance(layer, tuple)
+            for t in layer[:2]
+        }
+        return self.scale_module.scale_mapping == "exp" and covered | {id(self.log_std)} == {
+            id(p) for p in params
+        }
+
+    @staticmethod
+    def mlp(layers: list[Any], x: Tensor) -> Tensor:
+        """Runs plain layers (``(fn, weight, bias)`` tuples or callables) on ``x``.
+
+        Args:
+            layers: the layers.
+            x: the input.
+        """
+        for layer in layers:
+            x = layer[0](x, layer[1], layer[2]) if isinstance(layer, tuple) else layer(x)
+        return x
+
+    def dist_params(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """The policy's ``(loc, scale)`` at observations ``[..., obs_dim]``.
+
+        Args:
+            obs: the observations.
+        """
+        loc = self.mlp(self.loc_layers, obs)
+        scale = self.log_std.expand_as(loc)
+        scale = self._scale_map(scale).clamp_min(self.scale_module.scale_lb)
+        return loc, scale
+
+    def value(self, obs: Tensor) -> Tensor:
+        """The critic's ``state_value`` of observations ``[..., obs_dim]`` (``[..., 1]``).
+
+        Args:
+            obs: the observations.
+        """
+        return self.mlp(self.value_layers, obs)
+
+    def pre_tanh(self, action: Tensor) -> tuple[Tensor, Tensor]:
+        """A squashed action's pre-tanh value and log-det-Jacobian (no gradient).
+
+        Args:
+            action: actions ``[..., A]`` of the ``TanhNormal`` policy.
+        """
+        with torch.no_grad():
+            pre = self.transform.inv(action)
+            return pre, _sum_last(self.transform.log_abs_det_jacobian(pre, action), pre)
+
+
+class PPOAdvantage:
+    """GAE of a ``[*B, T]`` batch on plain tensors, as the stock ``GAE`` module computes it.
+
+    Args:
+        gae: the stock ``GAE`` module (its gamma, lambda, keys and recursion).
+        nets: the critic as plain layers.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.objectives import ClipPPOLoss
+        >>> from torchrl.objectives.value import GAE
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> env = make_env("Pendulum-v1", seed=0)
+        >>> actor, critic = make_ppo_actor_critic(env, hidden_sizes=(8,))
+        >>> gae = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False)
+        >>> adv = PPOAdvantage(gae, PlainPPONetworks(ClipPPOLoss(actor, critic)))
+        >>> with torch.no_grad():
+        ...     batch = env.rollout(8, actor)
+        >>> [t.shape for t in adv(batch)]
+        [torch.Size([8, 1]), torch.Size([8, 1])]
+    """
+
+    def __init__(self, gae: GAE, nets: PlainPPONetworks) -> None:
+        self.gae = gae
+        self.nets = nets
+        self.reward_key = gae.tensor_keys.reward
+        self.done_key = gae.tensor_keys.done
+        self.terminated_key = gae.tensor_keys.terminated
+
+    def __call__(self, batch: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """GAE of a ``[*B, T]`` batch, as the stock module computes it (no gradient).
+
+        Args:
+            batch: a collector batch (observation, ``next`` observation, reward, done,
+                terminated).
+
+        Returns:
+            ``(advantage, value_target)``, each ``[*B, T, 1]``.
+        """
+        gae = self.gae
+        obs = batch.get(self.nets.observation_key)
+        nxt = batch.get("next")
+        with torch.no_grad():
+            values = self.nets.value(torch.stack([obs, nxt.get(self.nets.observation_key)], 0))
+            value, next_value = values[0], values[1]
+            reward = nxt.get(self.reward_key)
+            done = nxt.get(self.done_key)
+            terminated = nxt.get(self.terminated_key, default=done)
+            gamma = gae.gamma.to(reward.device)
+            lmbda = gae.lmbda.to(reward.device)
+            fn = (
+                vec_generalized_advantage_estimate
+                if gae.vectorized
+                else generalized_advantage_estimate
+            )
+            return fn(
+                gamma,
+                lmbda,
+                value,
+                next_value,
+                reward,
+                done=done,
+                terminated=terminated,
+                time_dim=batch.ndim - 1,
+            )
+
+
+class PPOGradients:
+    """The ``ClipPPOLoss`` terms of one minibatch, through autograd or differentiated by hand.
+
+    Args:
+        loss: the stock ``ClipPPOLoss`` (coefficients, clip, critic distance).
+        nets: its networks as plain layers.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.objectives import ClipPPOLoss
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> actor, critic = make_ppo_actor_critic(make_env("Pendulum-v1"), hidden_sizes=(8,))
+        >>> loss = ClipPPOLoss(actor, critic)
+        >>> grads = PPOGradients(loss, PlainPPONetworks(loss))
+        >>> mb = {"obs": torch.zeros(4, 3), "action": torch.zeros(4, 1), "log_prob": torch.zeros(4),
+        ...       "advantage": torch.ones(4, 1), "value_target": torch.zeros(4, 1)}
+        >>> len(grads.losses(mb))
+        4
+    """
+
+    def __init__(self, loss: ClipPPOLoss, nets: PlainPPONetworks) -> None:
+        self.loss = loss
+        self.nets = nets
+
+    def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The ``ClipPPOLoss`` terms of one minibatch of tensors.
+
+        Args:
+            mb: ``obs [N, obs_dim]``, ``action [N, A]``, ``log_prob [N]``,
+                ``advantage [N, 1]`` and ``value_target [N, 1]``.
+
+        Returns:
+            ``(loss_objective, loss_critic, loss_entropy, kl_approx)`` (``kl_approx`` detached).
+        """
+        loss = self.loss
+        advantage = mb["advantage"]
+        if loss.normalize_advantage and advantage.numel() > 1:
+            advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
+        loc, scale = self.nets.dist_params(mb["obs"])
+        nets = self.nets
+        if nets.tanh:
+            pre_action, log_det = nets.pre_tanh(mb["action"])
+            log_prob = _normal_log_prob(pre_action, loc, scale).sum(-1) - log_det
+        else:
+            log_prob = _normal_log_prob(mb["action"], loc, scale).sum(-1)
+        prev = mb["log_prob"]
+        log_weight = (log_prob - prev).unsqueeze(-1)
+        kl_approx = (prev - log_prob).unsqueeze(-1).detach().mean()
+        gain1 = log_weight.exp() * advantage
+        eps = loss.clip_epsilon
+        log_weight_clip = log_weight.clamp((-eps).log1p(), eps.log1p())
+        gain2 = log_weight_clip.exp() * advantage
+        gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
+        loss_objective = (-gain).mean()
+        if nets.tanh:
+            noise = torch.empty(
+                (loss.samples_mc_entropy, *loc.shape), dtype=loc.dtype, device=loc.device
+            ).normal_()
+            pre = loc + noise * scale
+            lp = _normal_log_prob(pre, loc, scale).sum(-1)
+            if nets.tanh_only:
+                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
+            else:
+                log_det = nets.transform.log_abs_det_jacobian(pre, nets.transform(pre))
+            lp = lp - _sum_last(log_det, pre)
+            entropy = -lp.mean(0)
+        else:
+            entropy = (0.5 + 0.5 * _LOG2PI + scale.log()).sum(-1)
+        loss_entropy = (-loss.entropy_coeff * entropy.unsqueeze(-1)).mean()
+        value = nets.value(mb["obs"])
+        loss_critic = _DISTANCES[loss.loss_critic_type](mb["value_target"], value, reduction="none")
+        loss_critic = (loss.critic_coeff * loss_critic).mean()
+        return loss_objective, loss_critic, loss_entropy, kl_approx
+
+    def scalars(self) -> dict[str, float]:
+        """The loss's constants the hand-written gradients read (read once per iteration)."""
+        loss = self.loss
+        eps = loss.clip_epsilon
+        return {
+            "low": float((-eps).log1p()),
+            "high": float(eps.log1p()),
+            "entropy_coeff": float(loss.entropy_coeff),
+            "critic_coeff": float(loss.critic_coeff),
+            "scale_lb": float(self.nets.scale_module.scale_lb),
+        }
+
+    @torch.no_grad()
+    def manual(
+        self, mb: dict[str, Tensor], grads: dict[int, Tensor], c: dict[str, float]
+    ) -> Tensor:
+        """The minibatch losses with their gradients written by hand into ``grads``.
+
+        Same losses as :meth:`losses` (the analytic derivatives of each term, so equal to the
+        autograd gradients up to float rounding); ``mb["advantage"]`` is ``[N]`` and already
+        standardised (:func:`_standardize_minibatches`). Returns the stacked logged statistics.
+        """
+        loss, nets = self.loss, self.nets
+        obs = mb["obs"]
+        n = obs.shape[0]
+        advantage = mb["advantage"]  # already standardised per minibatch, [N]
+        # actor: loc network, scale = exp(log_std).clamp_min(lb)
+        loc, loc_acts = _spec_forward(nets.loc_spec, obs)
+        raw = nets.log_std.exp()
+        scale = raw.clamp_min(c["scale_lb"])
+        dscale = scale * (raw >= c["scale_lb"])  # d scale / d log_std
+        log_scale = scale.log()
+        inv_var = (scale * scale).reciprocal()
+        const = log_scale.sum() + loc.shape[-1] * _LOG_SQRT_2PI
+        z = mb["action"] - loc
+        zz = z * z * inv_var
+        log_prob = -0.5 * zz.sum(-1) - const
+        if nets.tanh:
+            log_prob = log_prob - mb["log_det"]
+        prev = mb["log_prob"]
+        kl_approx = (prev - log_prob).mean()
+        log_weight = log_prob - prev
+        gain1 = log_weight.exp() * advantage
+        gain2 = log_weight.clamp(c["low"], c["high"]).exp() * advantage
+        take1 = gain1 <= gain2
+        loss_objective = -torch.where(take1, gain1, gain2).mean()
+        d_lp = (gain1 * take1) * (-1.0 / n)  # d loss_objective / d log_prob
+        d_loc = d_lp.unsqueeze(-1) * z * inv_var
+        d_scale = (d_lp.unsqueeze(-1) * (zz - 1.0)).sum(0) / scale
+        coeff = c["entropy_coeff"]
+        if nets.tanh:
+            k = loss.samples_mc_entropy
+            noise = torch.empty((k, *loc.shape), dtype=loc.dtype, device=loc.device).normal_()
+            pre = loc + noise * scale
+            u = pre - loc
+            if nets.tanh_only:
+                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
+            else:
+                log_det = nets.transform.log_abs_det_jacobian(pre, nets.transform(pre))
+            lp = -0.5 * (u * u * inv_var).sum(-1) - const - _sum_last(log_det, pre)
+            loss_entropy = coeff * lp.mean(0).mean()
+            # d lp / d pre = 2 tanh(pre) (the Gaussian term is the density of the noise)
+            th2 = 2.0 * pre.tanh()
+            w = coeff / (k * n)
+            d_loc = d_loc + w * th2.sum(0)
+            d_scale = d_scale + w * ((th2 * noise).sum((0, 1)) - (k * n) / scale)
+        else:
+            entropy = (0.5 + 0.5 * _LOG2PI + log_scale).sum(-1)
+            loss_entropy = (-coeff * entropy).mean()
+            d_scale = d_scale - coeff / scale
+        torch.mul(d_scale, dscale, out=grads[id(nets.log_std)])
+        _spec_backward(nets.loc_spec, loc_acts, d_loc, grads)
+        # critic
+        value, value_acts = _spec_forward(nets.value_spec, obs)
+        target = mb["value_target"]
+        kind = loss.loss_critic_type
+        loss_critic = c["critic_coeff"] * _DISTANCES[kind](target, value, reduction="none").mean()
+        diff = target - value
+        if kind == "smooth_l1":  # beta = 1: the derivative is the clipped difference
+            d_value = diff.clamp(-1.0, 1.0)
+        elif kind == "l2":
+            d_value = 2.0 * diff
+        else:
+            d_value = diff.sign()
+        _spec_backward(nets.value_spec, value_acts, d_value * (-c["critic_coeff"] / n), grads)
+        return torch.stack([loss_objective, loss_critic, loss_entropy, kl_approx])
+
+
 class FusedPPOUpdate:
-    """The :func:`ppo_update` iteration in plain tensor operations.
+    """The :func:`ppo_update` iteration in plain tensor operations, on the loss's own parameters.
 
-    Computes what :func:`ppo_update` computes with the stock
-    :class:`~torchrl.objectives.ClipPPOLoss` and :class:`~torchrl.objectives.value.GAE`, on the
-    very parameters those modules hold (so the optimiser, checkpoints and the collector's policy
-    are shared with the stock path): GAE once on the ``[*B, T]`` batch (the stock recursion of
-    :mod:`torchrl.objectives.value.functional`, with ``done``/``terminated`` handled as GAE does),
-    then ``epochs`` passes over a fresh ``torch.randperm`` of the flattened batch, each minibatch
-    taking one clipped-surrogate + entropy + critic step with gradient-norm clipping. The
-    advantage is standardised per minibatch as ``ClipPPOLoss(normalize_advantage=True)`` does
-    (unbiased std, clamped at the float32 resolution); the ``TanhNormal`` entropy is the stock
-    one-sample reparameterised Monte-Carlo estimate (one ``normal_`` draw per minibatch, in the
-    stock order), the ``IndependentNormal`` entropy is analytic. Random draws (the permutations
-    and the entropy samples) follow the stock order; the stock path stays the reference.
-
-    Two ways to get the gradients, same algorithm:
-
-    - ``gradients="manual"`` (default): the analytic derivatives of each loss term written by
-      hand (no autograd graph), backpropagated through the MLPs with plain matmuls, then the
-      gradient clip and Adam on one flat buffer of all parameters (``optimizer`` must be a
-      plain ``torch.optim.Adam``; its state stays its own). Equal to autograd up to float
-      rounding: agrees with the autograd path to 1e-12 in float64; in float32 the rounding
-      differs, so runs drift apart at rounding level (about 1e-6 on the parameters after one
-      2048-frame iteration, growing with later iterations as PPO's clip decisions flip).
-      Falls back to ``"autograd"`` for networks it cannot differentiate by hand (layers other
-      than ``Linear``/``ReLU``/``Tanh``, e.g. the ``normal`` actor's squashed-mean wrapper) or
-      another optimiser; the attribute ``manual`` says which path runs.
-    - ``gradients="autograd"``: the same loss terms, op for op as the stock loss, through
-      autograd: bit-identical to :func:`ppo_update` (parameters, optimiser state, statistics).
-
-    Both skip the tensordict indexing and cloning per minibatch, the distribution objects and
-    the per-minibatch host syncs of the logged statistics (gathered on device, read once).
-
-    Supports the networks of :func:`~torchrl_mbmf.modules.make_ppo_actor_critic`: an actor
-    whose ``TensorDictModule`` writes ``["loc", "scale"]`` (a loc network followed by
-    :class:`~tensordict.nn.AddStateIndependentNormalScale`) with a ``TanhNormal`` or
-    ``IndependentNormal`` distribution, and a critic ``ValueOperator`` on one observation key.
-    Unsupported loss or GAE settings (value clipping, a delayed actor, masks, shifted GAE,
-    ...) raise ``ValueError``.
-
-    .. note:: With a plain Adam the parameters, their ``.grad`` and the optimiser's moment
-       estimates become views of flat buffers (same values, same objects); a reloaded
-       ``state_dict`` or ``zero_grad(set_to_none=True)`` is picked up again on the next call.
+    GAE once on the ``[*B, T]`` batch (:class:`PPOAdvantage`), then ``epochs`` passes over a
+    fresh ``torch.randperm`` of the flattened batch, one clipped-surrogate + entropy + critic
+    step per minibatch with gradient-norm clipping (:class:`PPOGradients`). Random draws
+    follow the stock order. ``gradients="autograd"`` is bit-identical to :func:`ppo_update`;
+    ``gradients="manual"`` (the default) differentiates by hand and steps Adam on one flat
+    buffer, equal up to float rounding, falling back to autograd for networks or optimisers
+    it does not cover (``manual`` says which runs). Unsupported loss or GAE settings raise
+    ``ValueError``. Why and how: ``docs/design/fused_updates.md``.
 
     Args:
         loss: the stock ``ClipPPOLoss`` (``normalize_advantage`` either way).
@@ -212,126 +542,40 @@ class FusedPPOUpdate:
         keys = loss.tensor_keys
         self.action_key = keys.action
         self.log_prob_key = keys.sample_log_prob
-        self.value_key = keys.value
-        self.reward_key = gae.tensor_keys.reward
-        self.done_key = gae.tensor_keys.done
-        self.terminated_key = gae.tensor_keys.terminated
-        policy, dist_module = _policy_parts(loss.actor_network)
-        self.observation_key = policy.in_keys[0]
-        net = policy.module
-        if not (
-            isinstance(net, nn.Sequential) and isinstance(net[-1], AddStateIndependentNormalScale)
-        ):
-            raise ValueError(
-                "FusedPPOUpdate expects the actor's loc/scale module to be "
-                "Sequential(loc_net, AddStateIndependentNormalScale) (see make_ppo_actor_critic)"
-            )
-        actor_owned = _owned_params(loss.actor_network, loss.actor_network_params)
-        self._loc_layers = _plain_layers(net[0] if len(net) == 2 else net[:-1], actor_owned)
-        self._scale_module = net[-1]
-        self._log_std = actor_owned[id(net[-1].state_independent_scale)]
-        self._scale_map = mappings(self._scale_module.scale_mapping)
-        critic = loss.critic_network
-        if list(critic.in_keys) != [self.observation_key] or list(critic.out_keys) != [
-            self.value_key
-        ]:
-            raise ValueError(
-                f"FusedPPOUpdate expects a critic reading {[self.observation_key]} and writing "
-                f"{[self.value_key]}, got in_keys={critic.in_keys} out_keys={critic.out_keys}"
-            )
-        critic_owned = _owned_params(critic, loss.critic_network_params)
-        self._value_layers = _plain_layers(critic.module, critic_owned)
-        dist_class = dist_module.distribution_class
-        kwargs = dict(dist_module.distribution_kwargs or {})
-        if issubclass(dist_class, TanhNormal):
-            if kwargs.get("tanh_loc", False) or kwargs.get("event_dims", 1) != 1:
-                raise ValueError("FusedPPOUpdate expects TanhNormal(tanh_loc=False, event_dims=1)")
-            probe = dist_class(torch.zeros(1), torch.ones(1), **kwargs)
-            self._transform = probe.transforms[0]
-            self._tanh_only = isinstance(self._transform, D.TanhTransform)
-            self.tanh = True
-        elif issubclass(dist_class, IndependentNormal):
-            if kwargs.get("tanh_loc", False) or kwargs.get("event_dim", 1) != 1:
-                raise ValueError(
-                    "FusedPPOUpdate expects IndependentNormal(tanh_loc=False, event_dim=1)"
-                )
-            self.tanh = False
-        else:
-            raise ValueError(
-                "FusedPPOUpdate supports TanhNormal and IndependentNormal actors, got "
-                f"{dist_class.__name__}"
-            )
-        self._loc_spec = _manual_spec(self._loc_layers)
-        self._value_spec = _manual_spec(self._value_layers)
-        covered = {
-            id(t)
-            for spec in (self._loc_spec, self._value_spec)
-            for layer in spec or ()
-            if isinstance(layer, tuple)
-            for t in layer[:2]
-        }
+        self.nets = PlainPPONetworks(loss)
+        self.observation_key = self.nets.observation_key
+        self.tanh = self.nets.tanh
+        self.gae_step = PPOAdvantage(gae, self.nets)
+        self.grads = PPOGradients(loss, self.nets)
         self.manual = (
             gradients == "manual"
-            and self._loc_spec is not None
-            and self._value_spec is not None
-            and self._scale_module.scale_mapping == "exp"
-            and covered | {id(self._log_std)} == {id(p) for p in self.params}
+            and self.nets.differentiable_by_hand(self.params)
             and _FlatAdam.supports(optimizer, self.params)
         )
 
-    # ------------------------------------------------------------------ pieces
-    @staticmethod
-    def _mlp(layers: list[Any], x: Tensor) -> Tensor:
-        for layer in layers:
-            x = layer[0](x, layer[1], layer[2]) if isinstance(layer, tuple) else layer(x)
-        return x
-
-    def _dist_params(self, obs: Tensor) -> tuple[Tensor, Tensor]:
-        loc = self._mlp(self._loc_layers, obs)
-        scale = self._log_std.expand_as(loc)
-        scale = self._scale_map(scale).clamp_min(self._scale_module.scale_lb)
-        return loc, scale
-
     def value(self, obs: Tensor) -> Tensor:
-        """The critic's ``state_value`` of observations ``[..., obs_dim]`` (``[..., 1]``)."""
-        return self._mlp(self._value_layers, obs)
-
-    def advantage(self, batch: TensorDictBase) -> tuple[Tensor, Tensor]:
-        """GAE of a ``[*B, T]`` batch, as the stock module computes it (no gradient).
+        """The critic's ``state_value`` of observations ``[..., obs_dim]`` (``[..., 1]``).
 
         Args:
-            batch: a collector batch (observation, ``next`` observation, reward, done,
-                terminated).
-
-        Returns:
-            ``(advantage, value_target)``, each ``[*B, T, 1]``.
+            obs: the observations.
         """
-        gae = self.gae
-        obs = batch.get(self.observation_key)
-        nxt = batch.get("next")
-        with torch.no_grad():
-            values = self.value(torch.stack([obs, nxt.get(self.observation_key)], 0))
-            value, next_value = values[0], values[1]
-            reward = nxt.get(self.reward_key)
-            done = nxt.get(self.done_key)
-            terminated = nxt.get(self.terminated_key, default=done)
-            gamma = gae.gamma.to(reward.device)
-            lmbda = gae.lmbda.to(reward.device)
-            fn = (
-                vec_generalized_advantage_estimate
-                if gae.vectorized
-                else generalized_advantage_estimate
-            )
-            return fn(
-                gamma,
-                lmbda,
-                value,
-                next_value,
-                reward,
-                done=done,
-                terminated=terminated,
-                time_dim=batch.ndim - 1,
-            )
+        return self.nets.value(obs)
+
+    def advantage(self, batch: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """``(advantage, value_target)`` of a ``[*B, T]`` batch (see :class:`PPOAdvantage`).
+
+        Args:
+            batch: a collector batch.
+        """
+        return self.gae_step(batch)
+
+    def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The minibatch's loss terms through autograd (see :meth:`PPOGradients.losses`).
+
+        Args:
+            mb: the minibatch tensors.
+        """
+        return self.grads.losses(mb)
 
     def _prepare(self, batch: TensorDictBase, manual: bool) -> dict[str, Tensor]:
         if batch.ndim < 1:
@@ -357,151 +601,11 @@ class FusedPPOUpdate:
             # The exact path computes them per minibatch as the stock loss does: elementwise
             # kernels round the tail of a tensor differently, so the batch shape matters.
             with torch.no_grad():
-                t = self._transform
+                t = self.nets.transform
                 pre = t.inv(action)
                 data["action"] = pre
                 data["log_det"] = _sum_last(t.log_abs_det_jacobian(pre, action), pre)
         return data
-
-    def _pre_tanh(self, action: Tensor) -> tuple[Tensor, Tensor]:
-        with torch.no_grad():
-            pre = self._transform.inv(action)
-            return pre, _sum_last(self._transform.log_abs_det_jacobian(pre, action), pre)
-
-    def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The ``ClipPPOLoss`` terms of one minibatch of tensors.
-
-        Args:
-            mb: ``obs [N, obs_dim]``, ``action [N, A]``, ``log_prob [N]``,
-                ``advantage [N, 1]`` and ``value_target [N, 1]``.
-
-        Returns:
-            ``(loss_objective, loss_critic, loss_entropy, kl_approx)`` (``kl_approx`` detached).
-        """
-        loss = self.loss
-        advantage = mb["advantage"]
-        if loss.normalize_advantage and advantage.numel() > 1:
-            advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
-        loc, scale = self._dist_params(mb["obs"])
-        if self.tanh:
-            pre_action, log_det = self._pre_tanh(mb["action"])
-            log_prob = _normal_log_prob(pre_action, loc, scale).sum(-1) - log_det
-        else:
-            log_prob = _normal_log_prob(mb["action"], loc, scale).sum(-1)
-        prev = mb["log_prob"]
-        log_weight = (log_prob - prev).unsqueeze(-1)
-        kl_approx = (prev - log_prob).unsqueeze(-1).detach().mean()
-        gain1 = log_weight.exp() * advantage
-        eps = loss.clip_epsilon
-        log_weight_clip = log_weight.clamp((-eps).log1p(), eps.log1p())
-        gain2 = log_weight_clip.exp() * advantage
-        gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
-        loss_objective = (-gain).mean()
-        if self.tanh:
-            noise = torch.empty(
-                (loss.samples_mc_entropy, *loc.shape), dtype=loc.dtype, device=loc.device
-            ).normal_()
-            pre = loc + noise * scale
-            lp = _normal_log_prob(pre, loc, scale).sum(-1)
-            if self._tanh_only:
-                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
-            else:
-                log_det = self._transform.log_abs_det_jacobian(pre, self._transform(pre))
-            lp = lp - _sum_last(log_det, pre)
-            entropy = -lp.mean(0)
-        else:
-            entropy = (0.5 + 0.5 * _LOG2PI + scale.log()).sum(-1)
-        loss_entropy = (-loss.entropy_coeff * entropy.unsqueeze(-1)).mean()
-        value = self.value(mb["obs"])
-        loss_critic = _DISTANCES[loss.loss_critic_type](mb["value_target"], value, reduction="none")
-        loss_critic = (loss.critic_coeff * loss_critic).mean()
-        return loss_objective, loss_critic, loss_entropy, kl_approx
-
-    def _scalars(self) -> dict[str, float]:
-        loss = self.loss
-        eps = loss.clip_epsilon
-        return {
-            "low": float((-eps).log1p()),
-            "high": float(eps.log1p()),
-            "entropy_coeff": float(loss.entropy_coeff),
-            "critic_coeff": float(loss.critic_coeff),
-            "scale_lb": float(self._scale_module.scale_lb),
-        }
-
-    @torch.no_grad()
-    def _manual_grads(
-        self, mb: dict[str, Tensor], grads: dict[int, Tensor], c: dict[str, float]
-    ) -> Tensor:
-        """The minibatch losses with their gradients written by hand into ``grads``.
-
-        Same losses as :meth:`losses` (the analytic derivatives of each term, so equal to the
-        autograd gradients up to float rounding); ``mb["advantage"]`` is ``[N]`` and already
-        standardised (:func:`_standardize_minibatches`). Returns the stacked logged statistics.
-        """
-        loss = self.loss
-        obs = mb["obs"]
-        n = obs.shape[0]
-        advantage = mb["advantage"]  # already standardised per minibatch, [N]
-        # actor: loc network, scale = exp(log_std).clamp_min(lb)
-        loc, loc_acts = _spec_forward(self._loc_spec, obs)
-        raw = self._log_std.exp()
-        scale = raw.clamp_min(c["scale_lb"])
-        dscale = scale * (raw >= c["scale_lb"])  # d scale / d log_std
-        log_scale = scale.log()
-        inv_var = (scale * scale).reciprocal()
-        const = log_scale.sum() + loc.shape[-1] * _LOG_SQRT_2PI
-        z = mb["action"] - loc
-        zz = z * z * inv_var
-        log_prob = -0.5 * zz.sum(-1) - const
-        if self.tanh:
-            log_prob = log_prob - mb["log_det"]
-        prev = mb["log_prob"]
-        kl_approx = (prev - log_prob).mean()
-        log_weight = log_prob - prev
-        gain1 = log_weight.exp() * advantage
-        gain2 = log_weight.clamp(c["low"], c["high"]).exp() * advantage
-        take1 = gain1 <= gain2
-        loss_objective = -torch.where(take1, gain1, gain2).mean()
-        d_lp = (gain1 * take1) * (-1.0 / n)  # d loss_objective / d log_prob
-        d_loc = d_lp.unsqueeze(-1) * z * inv_var
-        d_scale = (d_lp.unsqueeze(-1) * (zz - 1.0)).sum(0) / scale
-        coeff = c["entropy_coeff"]
-        if self.tanh:
-            k = loss.samples_mc_entropy
-            noise = torch.empty((k, *loc.shape), dtype=loc.dtype, device=loc.device).normal_()
-            pre = loc + noise * scale
-            u = pre - loc
-            if self._tanh_only:
-                log_det = 2.0 * (_LOG2 - pre - F.softplus(-2.0 * pre))
-            else:
-                log_det = self._transform.log_abs_det_jacobian(pre, self._transform(pre))
-            lp = -0.5 * (u * u * inv_var).sum(-1) - const - _sum_last(log_det, pre)
-            loss_entropy = coeff * lp.mean(0).mean()
-            # d lp / d pre = 2 tanh(pre) (the Gaussian term is the density of the noise)
-            th2 = 2.0 * pre.tanh()
-            w = coeff / (k * n)
-            d_loc = d_loc + w * th2.sum(0)
-            d_scale = d_scale + w * ((th2 * noise).sum((0, 1)) - (k * n) / scale)
-        else:
-            entropy = (0.5 + 0.5 * _LOG2PI + log_scale).sum(-1)
-            loss_entropy = (-coeff * entropy).mean()
-            d_scale = d_scale - coeff / scale
-        torch.mul(d_scale, dscale, out=grads[id(self._log_std)])
-        _spec_backward(self._loc_spec, loc_acts, d_loc, grads)
-        # critic
-        value, value_acts = _spec_forward(self._value_spec, obs)
-        target = mb["value_target"]
-        kind = loss.loss_critic_type
-        loss_critic = c["critic_coeff"] * _DISTANCES[kind](target, value, reduction="none").mean()
-        diff = target - value
-        if kind == "smooth_l1":  # beta = 1: the derivative is the clipped difference
-            d_value = diff.clamp(-1.0, 1.0)
-        elif kind == "l2":
-            d_value = 2.0 * diff
-        else:
-            d_value = diff.sign()
-        _spec_backward(self._value_spec, value_acts, d_value * (-c["critic_coeff"] / n), grads)
-        return torch.stack([loss_objective, loss_critic, loss_entropy, kl_approx])
 
     def __call__(self, batch: TensorDictBase) -> dict[str, float]:
         """One PPO iteration on a collected ``[*B, T]`` batch.
@@ -517,10 +621,10 @@ class FusedPPOUpdate:
         if manual:
             index = {id(p): i for i, p in enumerate(self.params)}
             grads = {pid: flat.views["grad"][i] for pid, i in index.items()}
-            scalars = self._scalars()
+            scalars = self.grads.scalars()
             # transposed weight views, taken after the flat buffers own the parameters
-            self._loc_spec = _retranspose(self._loc_spec)
-            self._value_spec = _retranspose(self._value_spec)
+            self.nets.loc_spec = _retranspose(self.nets.loc_spec)
+            self.nets.value_spec = _retranspose(self.nets.value_spec)
         stats = []
         for _ in range(self.epochs):
             perm = torch.randperm(n)
@@ -533,7 +637,7 @@ class FusedPPOUpdate:
             for i in range(0, n, mb_size):
                 mb = {k: v[i : i + mb_size] for k, v in shuffled.items()}
                 if manual:
-                    stats.append(self._manual_grads(mb, grads, scalars))
+                    stats.append(self.grads.manual(mb, grads, scalars))
                     flat.step(self.max_grad_norm, per_tensor_norms=False)
                     continue
                 objective, critic, entropy, kl = self.losses(mb)

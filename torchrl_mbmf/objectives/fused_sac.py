@@ -63,23 +63,13 @@ def sac_update_step(
 class FusedSACUpdate:
     """The ``SACLoss`` update in plain tensor operations, the Q-ensemble as batched matmuls.
 
-    Computes exactly the losses of the stock :class:`~torchrl.objectives.SACLoss` (version 2:
-    clipped double-Q TD(0) target with the target Q-networks and the entropy term, smooth-L1 Q
-    loss summed over the ensemble, reparameterised actor loss against the detached Q-networks,
-    temperature loss on ``log_alpha``) on the very parameters the loss module holds, so the
-    optimiser, the soft target update and checkpoints are shared with the stock path. It skips
-    the tensordict plumbing and ``vmap`` of the stock loss and evaluates both Q-networks with one
-    :func:`torch.baddbmm` per layer. An update (:meth:`update`, or calling the object on a
-    batch) writes the backward of both networks out by hand (autograd only runs through the
-    actor's ``NormalParamExtractor`` head and the TanhNormal sample) and gives every parameter
-    the gradient the stock ``loss_actor + loss_qvalue + loss_alpha`` gives it; :meth:`losses`
-    is the same math through autograd. The random draws follow the stock order (next-state
-    action first, then the current-state action), so with one seed both paths give the same
-    losses and gradients (tested against ``SACLoss``); ``SACLoss`` stays the reference.
-
-    Supports the networks of :func:`~torchrl_mbmf.modules.make_sac_actor_critic`: an actor
-    ``MLP -> NormalParamExtractor`` with a ``TanhNormal`` (``tanh_loc=False``) and Q-networks
-    that are ``MLP`` of ``Linear`` layers and parameter-free activations.
+    The losses of the stock :class:`~torchrl.objectives.SACLoss` (version 2) on the loss's
+    own parameters, so the optimiser, the soft target update and checkpoints are shared with
+    the stock path. :meth:`update` writes both networks' backward by hand; :meth:`losses` is
+    the same math through autograd. Random draws follow the stock order; tested equal to
+    ``SACLoss``. Supports the networks of
+    :func:`~torchrl_mbmf.modules.make_sac_actor_critic`. Why and how:
+    ``docs/design/fused_updates.md``.
 
     Args:
         loss: the ``SACLoss`` (built with ``num_qvalue_nets`` Q-networks, no value network).
@@ -92,17 +82,19 @@ class FusedSACUpdate:
         action_key: the action entry. Defaults to ``"action"``.
 
     Examples:
-        The SAC agent of the training loop builds one (``sac.update=fused``, the default):
-
-        >>> import torch, yaml
+        >>> import torch
+        >>> from torchrl.objectives import SACLoss, SoftUpdate
         >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.agents import SACAgent
-        >>> keys = yaml.safe_load(open("configs/algo/sac.yaml"))
-        >>> del keys["_target_"]
+        >>> from torchrl_mbmf.modules import make_sac_actor_critic
         >>> env = make_env("Pendulum-v1", seed=0)
-        >>> agent = SACAgent(env, torch.device("cpu"), **keys)
-        >>> batch = env.rollout(8, agent.actor).detach()
-        >>> sorted(agent.step(batch))
+        >>> actor, qvalue = make_sac_actor_critic(env, hidden_sizes=(16, 16))
+        >>> loss = SACLoss(actor, qvalue, action_spec=env.action_spec_unbatched)
+        >>> loss.make_value_estimator(gamma=0.99)
+        >>> optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
+        >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.005))
+        >>> with torch.no_grad():
+        ...     batch = env.rollout(8, actor)
+        >>> sorted(step(batch))
         ['alpha', 'loss_actor', 'loss_alpha', 'loss_qvalue']
     """
 
@@ -150,33 +142,7 @@ class FusedSACUpdate:
         self._assigns_all_grads = self._actor is not None and {id(p) for p in held} == {
             id(p) for p in assigned
         }
-        # The soft target update as plain in-place lerps when it is a stock SoftUpdate of the
-        # Q-networks only (what SoftUpdate.step does, without the tensordict traversal).
-        self._lerp_weight: float | None = None
-        if (
-            type(target_updater) is SoftUpdate
-            and target_updater.loss_module is loss
-            and not getattr(loss, "delay_actor", False)
-            and getattr(loss, "delay_qvalue", True)
-        ):
-            self._lerp_weight = 1.0 - float(target_updater.eps)
-
-    # ------------------------------------------------------------------ pieces
-    @staticmethod
-    def _q(params: list[Any], obs: Tensor, action: Tensor) -> Tensor:
-        """Q-values of every ensemble member, ``[n_q, B]``."""
-        x = torch.cat([obs, action], -1)
-        n = params[0].shape[0]
-        h = x.unsqueeze(0).expand(n, *x.shape)
-        i = 0
-        while i < len(params):
-            if callable(params[i]):
-                h = params[i](h)
-                i += 1
-            else:
-                h = torch.baddbmm(params[i + 1].unsqueeze(1), h, params[i].transpose(1, 2))
-                i += 2
-        return h.squeeze(-1)
+        self._lerp_weight = _soft_update_weight(target_updater, loss)
 
     def _sample(self, obs: Tensor) -> tuple[Tensor, Tensor]:
         """Reparameterised TanhNormal action and its log-probability."""
@@ -209,14 +175,14 @@ class FusedSACUpdate:
         alpha = loss.log_alpha.detach().exp()
         with torch.no_grad():
             next_action, next_log_prob = self._sample(next_obs)
-            next_q = self._q(self._q_target, next_obs, next_action)
+            next_q = _q_ensemble(self._q_target, next_obs, next_action)
             next_value = (next_q - alpha * next_log_prob).min(0).values
             target = reward + self.gamma * (~terminated).to(reward.dtype) * next_value
-        pred = self._q(self._q_params, obs, action)
+        pred = _q_ensemble(self._q_params, obs, action)
         loss_qvalue = F.smooth_l1_loss(pred, target.expand_as(pred), reduction="none")
         loss_qvalue = loss_qvalue.sum(0).mean()
         new_action, log_prob = self._sample(obs)
-        q_pi = self._q(self._q_detached, obs, new_action).min(0).values
+        q_pi = _q_ensemble(self._q_detached, obs, new_action).min(0).values
         loss_actor = (alpha * log_prob - q_pi).mean()
         log_prob = log_prob.detach()
         loss_alpha = (-loss.log_alpha * (log_prob + loss.target_entropy)).mean()
@@ -226,14 +192,6 @@ class FusedSACUpdate:
         self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor
     ) -> dict[str, Tensor]:
         """One update on a batch of tensors: the losses, their gradients, the step, the targets.
-
-        The Q-networks' forward and backward are written out (the current-state Q-values of the
-        replayed and of the new actions share one pass through the online Q-parameters; only
-        the replayed rows give those parameters gradients, the new-action rows only give the
-        action gradient for the actor), the actor's gradient comes from autograd and the
-        temperature's in closed form. The parameters receive the gradients of
-        ``loss_actor + loss_qvalue + loss_alpha`` of the stock loss (tested against
-        ``SACLoss``), then the optimiser steps and the target Q-networks are soft-updated.
 
         Args:
             obs: observations ``[B, obs_dim]``.
@@ -247,17 +205,19 @@ class FusedSACUpdate:
             (no host synchronisation; average them when logging).
 
         Examples:
-            With the SAC agent's replay sampler (the tensors this method reads):
-
             >>> import torch
-            >>> from omegaconf import OmegaConf
+            >>> from torchrl.objectives import SACLoss, SoftUpdate
             >>> from torchrl_mbmf.envs import make_env
-            >>> from torchrl_mbmf.trainers import agents
-            >>> cfg = OmegaConf.create({"sac": OmegaConf.load("configs/algo/sac.yaml")})
+            >>> from torchrl_mbmf.modules import make_sac_actor_critic
             >>> env = make_env("Pendulum-v1", seed=1)
-            >>> agent = agents.make_agent("sac", env, cfg, torch.device("cpu"))
-            >>> agent.observe(env.rollout(300, agent.actor, break_when_any_done=False))
-            >>> out = agent.step.update(*agent.sampler())
+            >>> actor, qvalue = make_sac_actor_critic(env, hidden_sizes=(16, 16))
+            >>> loss = SACLoss(actor, qvalue, action_spec=env.action_spec_unbatched)
+            >>> loss.make_value_estimator(gamma=0.99)
+            >>> optim = torch.optim.Adam(loss.parameters())
+            >>> step = FusedSACUpdate(loss, optim, SoftUpdate(loss, tau=0.005))
+            >>> with torch.no_grad():
+            ...     batch = env.rollout(8, actor)
+            >>> out = step.update(*(batch.get(k) for k in step.batch_keys))
             >>> out["loss_qvalue"].shape
             torch.Size([])
         """
@@ -350,6 +310,38 @@ class FusedSACUpdate:
     def __call__(self, batch: TensorDictBase) -> dict[str, Tensor]:
         """One update on a replay-buffer batch (``[B]``); see :meth:`update`."""
         return self.update(*(batch.get(key) for key in self.batch_keys))
+
+
+def _q_ensemble(params: list[Any], obs: Tensor, action: Tensor) -> Tensor:
+    """Q-values of every ensemble member, ``[n_q, B]``."""
+    x = torch.cat([obs, action], -1)
+    n = params[0].shape[0]
+    h = x.unsqueeze(0).expand(n, *x.shape)
+    i = 0
+    while i < len(params):
+        if callable(params[i]):
+            h = params[i](h)
+            i += 1
+        else:
+            h = torch.baddbmm(params[i + 1].unsqueeze(1), h, params[i].transpose(1, 2))
+            i += 2
+    return h.squeeze(-1)
+
+
+def _soft_update_weight(target_updater: SoftUpdate, loss: SACLoss) -> float | None:
+    """The lerp weight of a stock ``SoftUpdate`` of the Q-networks only, else ``None``.
+
+    The soft target update then runs as plain in-place lerps (what ``SoftUpdate.step`` does,
+    without the tensordict traversal).
+    """
+    if (
+        type(target_updater) is SoftUpdate
+        and target_updater.loss_module is loss
+        and not getattr(loss, "delay_actor", False)
+        and getattr(loss, "delay_qvalue", True)
+    ):
+        return 1.0 - float(target_updater.eps)
+    return None
 
 
 def _mlp_forward(

@@ -22,15 +22,18 @@ written and checked is :mod:`torchrl_mbmf.runs.storage`; what a resume may chang
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
+from tensordict import NestedKey
 from torchrl.checkpoint import CheckpointRotation, GlobalRNGState, JSONCheckpointAdapter
-from torchrl.record.loggers import CSVLogger
+from torchrl.data import TensorDictReplayBuffer
+from torchrl.record.loggers import CSVLogger, Logger
 
 from torchrl_mbmf.checks import ConfigError
+from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.runs.export import save_policy
 from torchrl_mbmf.runs.layout import CHECKPOINTS
 from torchrl_mbmf.runs.logs import append_resume_log, cut_csv_logs
@@ -43,9 +46,68 @@ from torchrl_mbmf.runs.storage import (
     latest_intact_checkpoint,
 )
 
-__all__ = ["RunCheckpoint"]
+__all__ = ["ProgressAdapter", "ProgressRecord", "RunCheckpoint"]
 
 logger = logging.getLogger(__name__)
+
+
+class ProgressRecord(Protocol):
+    """The loop state a checkpoint holds, read by entry (a ``dict`` or a typed state object).
+
+    A typed object (``torchrl_mbmf.trainers.schedule.Progress``) also has ``to_dict`` and
+    ``load_dict``, which :class:`ProgressAdapter` uses.
+
+    Args:
+        *args: none (a protocol is not instantiated).
+        **kwargs: none.
+
+    Examples:
+        >>> record: ProgressRecord = {"real_steps": 3}
+        >>> record["real_steps"]
+        3
+    """
+
+    def __getitem__(self, key: str) -> Any: ...
+
+    def __setitem__(self, key: str, value: Any) -> None: ...
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """The entry ``key``, ``default`` if it is missing."""
+        ...
+
+
+class ProgressAdapter(JSONCheckpointAdapter):
+    """TorchRL's JSON adapter for the progress record, a ``dict`` or a typed state object.
+
+    An object with ``to_dict`` / ``load_dict`` is stored as the same ``value.json`` a
+    ``dict`` is, so checkpoints of either load into either.
+
+    Examples:
+        >>> import tempfile
+        >>> adapter = ProgressAdapter()
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     _ = adapter.save({"real_steps": 3}, Path(d), args=(), kwargs={})
+        ...     restored = {}
+        ...     _ = adapter.load(restored, Path(d), map_location=None, tensor_load_kwargs={},
+        ...                      args=(), kwargs={})
+        >>> restored
+        {'real_steps': 3}
+    """
+
+    def save(self, component: Any, path: Path, *, args: tuple, kwargs: Mapping[str, Any]) -> Any:
+        """Writes ``component`` (its ``to_dict()`` if it has one) as JSON."""
+        value = component.to_dict() if hasattr(component, "to_dict") else component
+        super().save(value, path, args=args, kwargs=kwargs)
+        return component
+
+    def load(self, component: Any, path: Path, **kwargs: Any) -> Any:
+        """Restores ``component`` in place (through its ``load_dict`` if it has one)."""
+        if not hasattr(component, "load_dict"):
+            return super().load(component, path, **kwargs)
+        value: dict[str, Any] = {}
+        super().load(value, path, **kwargs)
+        component.load_dict(value)
+        return component
 
 
 class RunCheckpoint:
@@ -86,14 +148,14 @@ class RunCheckpoint:
     def __init__(
         self,
         run_dir: Path,
-        progress: dict[str, Any],
+        progress: ProgressRecord,
         tensors: Mapping[str, Any],
-        logger: Any,
+        logger: Logger | None,
         *,
         keep_last: int = 2,
-        dataset: Any = None,
-        dataset_needed: Callable[[Mapping[str, Any]], bool] | None = None,
-        replay: tuple[Any, Any] | None = None,
+        dataset: TransitionDataset | None = None,
+        dataset_needed: Callable[[Any], bool] | None = None,
+        replay: tuple[TensorDictReplayBuffer, Sequence[NestedKey]] | None = None,
         backend: str = "csv",
     ) -> None:
         self.run_dir = Path(run_dir)
@@ -102,7 +164,7 @@ class RunCheckpoint:
         self.logger = logger
         self.backend = backend
         checkpoint = SealedWriter()
-        checkpoint.register("progress", progress, adapter=JSONCheckpointAdapter())
+        checkpoint.register("progress", progress, adapter=ProgressAdapter())
         components = {**tensors, "rng": GlobalRNGState()}
         if logger is not None and hasattr(logger, "state_dict"):
             components["logger"] = logger

@@ -341,31 +341,7 @@ class DatasetReplay:
             >>> size, loaded.resets == replay.resets  # 4 bytes an action
             (1200, True)
         """
-        path = Path(path)
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-        try:
-            raw = self.actions.numpy().astype("<f4", copy=False)
-            (tmp / _ACTIONS_FILE).write_bytes(raw.tobytes())
-            meta = {
-                "format": _FORMAT,
-                "num_transitions": len(self),
-                "action_shape": list(self.actions.shape[1:]),
-                "actions_sha256": _sha256(raw),
-                "resets": [list(pair) for pair in self.resets],
-                "trajectories": [list(pair) for pair in self.trajectories],
-                "record": self.record,
-            }
-            (tmp / _RECORD_FILE).write_text(json.dumps(meta, indent=1, sort_keys=True))
-            if path.exists():
-                shutil.rmtree(path)
-            os.replace(tmp, path)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return path
+        return _write_replay(self, path, overwrite)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> DatasetReplay:
@@ -394,34 +370,70 @@ class DatasetReplay:
             >>> rebuilt.record() == data.record()
             True
         """
-        path = Path(path)
-        meta_file = path / _RECORD_FILE
-        if not meta_file.is_file():
-            raise FileNotFoundError(f"no dataset replay at {path} (missing {_RECORD_FILE})")
-        try:
-            meta = json.loads(meta_file.read_text())
-        except json.JSONDecodeError as err:
-            raise CorruptDatasetError(f"{meta_file} is not valid JSON: {err}") from err
-        if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
-            found = meta.get("format") if isinstance(meta, dict) else None
-            raise CorruptDatasetError(f"{meta_file} has format {found!r}, expected {_FORMAT!r}")
-        shape = [int(meta["num_transitions"]), *(int(d) for d in meta["action_shape"])]
-        raw = (path / _ACTIONS_FILE).read_bytes() if (path / _ACTIONS_FILE).is_file() else b""
-        if len(raw) != 4 * int(np.prod(shape)):
-            raise CorruptDatasetError(
-                f"{path / _ACTIONS_FILE} has {len(raw)} bytes, expected {4 * int(np.prod(shape))} "
-                f"(float32 actions of shape {shape})"
-            )
-        array = np.frombuffer(raw, dtype="<f4")
-        if _sha256(array) != meta["actions_sha256"]:
-            raise CorruptDatasetError(f"{path / _ACTIONS_FILE} does not match its SHA-256")
-        actions = torch.from_numpy(array.astype(np.float32).reshape(shape))
-        return cls(
-            actions,
-            [tuple(pair) for pair in meta["resets"]],
-            [tuple(pair) for pair in meta["trajectories"]],
-            meta["record"],
+        return cls(*_read_replay(path))
+
+
+def _write_replay(replay: DatasetReplay, path: str | os.PathLike, overwrite: bool) -> Path:
+    """:meth:`DatasetReplay.save`'s writing."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        raw = replay.actions.numpy().astype("<f4", copy=False)
+        (tmp / _ACTIONS_FILE).write_bytes(raw.tobytes())
+        meta = {
+            "format": _FORMAT,
+            "num_transitions": len(replay),
+            "action_shape": list(replay.actions.shape[1:]),
+            "actions_sha256": _sha256(raw),
+            "resets": [list(pair) for pair in replay.resets],
+            "trajectories": [list(pair) for pair in replay.trajectories],
+            "record": replay.record,
+        }
+        (tmp / _RECORD_FILE).write_text(json.dumps(meta, indent=1, sort_keys=True))
+        if path.exists():
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+def _read_replay(
+    path: str | os.PathLike,
+) -> tuple[torch.Tensor, list[tuple[int, int]], list[tuple[int, int]], dict[str, Any]]:
+    """:meth:`DatasetReplay.load`'s reading: the constructor's arguments."""
+    path = Path(path)
+    meta_file = path / _RECORD_FILE
+    if not meta_file.is_file():
+        raise FileNotFoundError(f"no dataset replay at {path} (missing {_RECORD_FILE})")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except json.JSONDecodeError as err:
+        raise CorruptDatasetError(f"{meta_file} is not valid JSON: {err}") from err
+    if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else None
+        raise CorruptDatasetError(f"{meta_file} has format {found!r}, expected {_FORMAT!r}")
+    shape = [int(meta["num_transitions"]), *(int(d) for d in meta["action_shape"])]
+    raw = (path / _ACTIONS_FILE).read_bytes() if (path / _ACTIONS_FILE).is_file() else b""
+    if len(raw) != 4 * int(np.prod(shape)):
+        raise CorruptDatasetError(
+            f"{path / _ACTIONS_FILE} has {len(raw)} bytes, expected {4 * int(np.prod(shape))} "
+            f"(float32 actions of shape {shape})"
         )
+    array = np.frombuffer(raw, dtype="<f4")
+    if _sha256(array) != meta["actions_sha256"]:
+        raise CorruptDatasetError(f"{path / _ACTIONS_FILE} does not match its SHA-256")
+    actions = torch.from_numpy(array.astype(np.float32).reshape(shape))
+    return (
+        actions,
+        [tuple(pair) for pair in meta["resets"]],
+        [tuple(pair) for pair in meta["trajectories"]],
+        meta["record"],
+    )
 
 
 def _dataset_components(checkpoint: Path) -> list[Path]:

@@ -13,9 +13,9 @@ import sys
 import types
 import warnings
 
+from torchrl_mbmf.checks import TrainingDivergedError
 from torchrl_mbmf.trainers.agents import PPOAgent, SACAgent
 from torchrl_mbmf.trainers.config import METHODS, ConfigError, validate_train_config
-from torchrl_mbmf.trainers.guards import TrainingDivergedError
 from torchrl_mbmf.trainers.loop import Trainer, seed_everything
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
@@ -55,6 +55,7 @@ MOVED_MODULES: dict[str, tuple[str, ...]] = {
     "resume_logs": ("torchrl_mbmf.runs.logs",),
     "dataset_replay": ("torchrl_mbmf.runs.dataset_replay",),
     "export": ("torchrl_mbmf.runs.export",),
+    "guards": ("torchrl_mbmf.checks",),
     "ppo": ("torchrl_mbmf.objectives.fused_ppo",),
     "sac": (
         "torchrl_mbmf.objectives.fused_sac",

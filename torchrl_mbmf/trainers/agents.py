@@ -10,9 +10,10 @@ value. No setting of one algorithm is read by the other.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModuleBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -20,20 +21,23 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate
 from torchrl.objectives.value import GAE
 
+from torchrl_mbmf.checks import Setting, check_arguments, choice, settings
 from torchrl_mbmf.data.replay import ReplaySampler
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.planners import MinQValue
 from torchrl_mbmf.objectives.fused_ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
-from torchrl_mbmf.trainers.components import (
-    Setting,
-    check_arguments,
-    choice,
-    instantiate_group,
-    settings,
-)
+from torchrl_mbmf.trainers.components import instantiate_group
 
-__all__ = ["DISTRIBUTIONS", "PPO_UPDATES", "SAC_UPDATES", "PPOAgent", "SACAgent", "make_agent"]
+__all__ = [
+    "DISTRIBUTIONS",
+    "PPO_UPDATES",
+    "SAC_UPDATES",
+    "Agent",
+    "PPOAgent",
+    "SACAgent",
+    "make_agent",
+]
 
 #: PPO policy distributions (``ppo.distribution``).
 DISTRIBUTIONS: tuple[str, ...] = ("tanh_normal", "normal")
@@ -41,6 +45,53 @@ DISTRIBUTIONS: tuple[str, ...] = ("tanh_normal", "normal")
 PPO_UPDATES: tuple[str, ...] = ("fused", "fused_autograd", "stock")
 #: SAC update paths (``sac.update``).
 SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
+
+
+@runtime_checkable
+class Agent(Protocol):
+    """What the loop needs of a learning agent: act, learn, and the state a checkpoint holds.
+
+    :class:`PPOAgent` and :class:`SACAgent` implement it; any class with these members can be
+    a config group's ``_target_``.
+
+    Args:
+        *args: none (a protocol is not instantiated).
+        **kwargs: none.
+
+    Attributes:
+        actor: the policy that acts on the real env (and guides the planner).
+        loss: the TorchRL loss module (its ``in_keys`` are the replay entries).
+        replay: the replay buffer, or ``None`` for an on-policy agent.
+        logs_update_count: whether the loop logs the update count (PPO: one per batch).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_mbmf.envs import make_env
+        >>> cfg = OmegaConf.create({"ppo": OmegaConf.load("configs/algo/ppo.yaml")})
+        >>> agent = make_agent("ppo", make_env("Pendulum-v1"), cfg, torch.device("cpu"))
+        >>> isinstance(agent, Agent)
+        True
+    """
+
+    actor: TensorDictModuleBase
+    loss: torch.nn.Module
+    replay: TensorDictReplayBuffer | None
+    logs_update_count: bool
+
+    def observe(self, batch: TensorDictBase) -> None:
+        """Keeps the data of a batch that takes no update (the random-data phase)."""
+
+    def update(self, batch: TensorDictBase, real_steps: int) -> dict[str, float] | None:
+        """Learns from one collected batch; the scalars to log, ``None`` if it took none."""
+
+    def log_std(self, batch: TensorDictBase | None = None) -> float | None:
+        """The policy's mean log-std, for the logs."""
+
+    def checkpoint_components(self) -> dict[str, Any]:
+        """The stateful parts a checkpoint holds (tensor state), by name."""
+
+    def terminal_value(self) -> TensorDictModuleBase:
+        """The value module a planner may add at its horizon."""
 
 
 class PPOAgent:
@@ -343,7 +394,7 @@ class SACAgent:
         return MinQValue(self.actor, self.critic, self.loss.qvalue_network_params)
 
 
-def make_agent(method_family: str, env: EnvBase, cfg: Any, device: torch.device) -> Any:
+def make_agent(method_family: str, env: EnvBase, cfg: DictConfig, device: torch.device) -> Agent:
     """The agent of ``method_family`` (``"ppo"`` or ``"sac"``) built from ``cfg[method_family]``.
 
     The group is built by :func:`~torchrl_mbmf.trainers.components.instantiate_group`: its
@@ -368,4 +419,10 @@ def make_agent(method_family: str, env: EnvBase, cfg: Any, device: torch.device)
     """
     if method_family not in ("ppo", "sac"):
         raise ValueError(f"method_family={method_family!r}; expected one of ['ppo', 'sac']")
-    return instantiate_group(cfg, method_family, env=env, device=device)
+    agent = instantiate_group(cfg, method_family, env=env, device=device)
+    if not isinstance(agent, Agent):
+        raise TypeError(
+            f"{method_family}._target_ built a {type(agent).__name__}, which is no Agent "
+            f"(it needs {sorted(n for n in dir(Agent) if not n.startswith('_'))})"
+        )
+    return agent

@@ -4,24 +4,27 @@ from __future__ import annotations
 
 import copy
 import random
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger, get_logger
 
+from torchrl_mbmf.checks import check_finite, choice
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.envs.factory import make_env
 from torchrl_mbmf.runs.layout import LOGS
-from torchrl_mbmf.trainers.components import choice
-from torchrl_mbmf.trainers.guards import check_finite
 from torchrl_mbmf.trainers.hooks import (
     EpisodeLog,
     Evaluation,
+    HookFn,
     Hooks,
     ModelData,
     ModelRefit,
@@ -29,6 +32,7 @@ from torchrl_mbmf.trainers.hooks import (
     SaveCheckpoint,
     StepTiming,
 )
+from torchrl_mbmf.trainers.progress import RunPlan
 
 __all__ = [
     "LOGGERS",
@@ -59,7 +63,7 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def make_train_env(cfg: Any, seed: int, num_envs: int | None = None) -> EnvBase:
+def make_train_env(cfg: DictConfig, seed: int, num_envs: int | None = None) -> EnvBase:
     """The env of the ``env`` and ``reward`` config groups.
 
     Args:
@@ -105,8 +109,13 @@ def make_logger(run_dir: str | Path, *, backend: str) -> Logger | None:
 
 
 def make_collector(
-    env: EnvBase, policy: Any, frames: int, total: int, device: torch.device, kind: str = "lean"
-) -> Any:
+    env: EnvBase,
+    policy: TensorDictModuleBase | Callable[[TensorDictBase], TensorDictBase],
+    frames: int,
+    total: int,
+    device: torch.device,
+    kind: str = "lean",
+) -> Collector | LeanCollector:
     """The lean collector where the env supports it (``kind="lean"``), else the stock one.
 
     Args:
@@ -144,7 +153,7 @@ def make_collector(
 
 def evaluate_policy(
     env: EnvBase,
-    actor: Any,
+    actor: TensorDictModuleBase,
     episodes: int,
     device: torch.device,
     kind: str = "lean",
@@ -191,7 +200,7 @@ def evaluate_policy(
     return mean
 
 
-def make_hooks(cfg: Any, model_based: bool) -> tuple[Hooks, dict[str, Any]]:
+def make_hooks(cfg: DictConfig, model_based: bool) -> tuple[Hooks, dict[str, HookFn]]:
     """The loop's hooks of ``cfg``, and the ones the loop also calls by name.
 
     Args:
@@ -210,7 +219,12 @@ def make_hooks(cfg: Any, model_based: bool) -> tuple[Hooks, dict[str, Any]]:
         ['StepTiming', 'Evaluation']
     """
     named = {
-        "bar": ProgressBar(int(cfg.total_steps), cfg.method, bool(cfg.progress)),
+        "bar": ProgressBar(
+            int(cfg.total_steps),
+            cfg.method,
+            bool(cfg.progress),
+            RunPlan.from_config(cfg) if cfg.progress else None,
+        ),
         "timing": StepTiming(),
         "checkpoints": SaveCheckpoint(int(cfg.checkpoint.every_steps)),
     }

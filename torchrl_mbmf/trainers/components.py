@@ -19,17 +19,21 @@ anything is built. :class:`Setting` is the check the constructors share.
 from __future__ import annotations
 
 import inspect
-import math
 import re
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from hydra.errors import InstantiationException
 from hydra.utils import get_object, instantiate
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
-from torchrl_mbmf.checks import ConfigError
+from torchrl_mbmf.checks import (
+    ConfigError,
+    Setting,
+    check_arguments,
+    choice,
+    settings,
+)
 from torchrl_mbmf.runs.resume import DEFAULT_TARGETS
 
 __all__ = [
@@ -43,174 +47,6 @@ __all__ = [
     "instantiate_group",
     "settings",
 ]
-
-
-@dataclass(frozen=True)
-class Setting:
-    """The type and range of one argument (or config setting).
-
-    Args:
-        kind: ``"int"``, ``"float"``, ``"bool"``, ``"str"``, ``"choice"``, ``"dict"`` (not
-            checked here) or ``"sizes"`` (a list of integers >= 1, possibly empty).
-        low: smallest allowed value, or ``None``. Defaults to ``None``.
-        high: largest allowed value, or ``None``. Defaults to ``None``.
-        low_open: ``low`` itself is excluded. Defaults to ``False``.
-        high_open: ``high`` itself is excluded. Defaults to ``False``.
-        choices: the allowed values of a ``"choice"``. Defaults to none.
-        nullable: ``null`` is allowed too. Defaults to ``False``.
-        required: the key must be present (the trainer reads it without a default).
-            Defaults to ``True``.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.components import Setting
-        >>> Setting("float", 0, 1, low_open=True).check("gamma", 0.99)
-        >>> try:
-        ...     Setting("float", 0, 1, low_open=True).check("gamma", 5)
-        ... except ValueError as err:
-        ...     print(err)
-        gamma must be a number in (0, 1], got 5
-    """
-
-    kind: str
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-    choices: tuple[Any, ...] = ()
-    nullable: bool = False
-    required: bool = True
-
-    def describe(self) -> str:
-        """What the setting must be, in words (``"a number in (0, 1]"``)."""
-        what = {
-            "int": "an integer",
-            "float": "a number",
-            "bool": "true or false",
-            "str": "a string",
-            "sizes": "a list of integers >= 1",
-        }.get(self.kind, "")
-        if self.kind in ("int", "float"):
-            if self.low is not None and self.high is not None:
-                left = "(" if self.low_open else "["
-                right = ")" if self.high_open else "]"
-                what += f" in {left}{_fmt(self.low)}, {_fmt(self.high)}{right}"
-            elif self.low is not None:
-                what += f" {'>' if self.low_open else '>='} {_fmt(self.low)}"
-            elif self.high is not None:
-                what += f" {'<' if self.high_open else '<='} {_fmt(self.high)}"
-            elif self.kind == "float":
-                what = "a finite number"
-        return f"null or {what}" if self.nullable else what
-
-    def check(self, key: str, value: Any) -> None:
-        """Raises :class:`ConfigError` naming ``key`` and ``value`` unless the value fits."""
-        if (value is None and self.nullable) or self.kind == "dict":
-            return
-        if self.kind == "choice":
-            if value not in self.choices:
-                raise ConfigError(
-                    f"{key}={value!r} is not supported; allowed: {list(self.choices)}"
-                )
-            return
-        if not self._fits(value):
-            raise ConfigError(f"{key} must be {self.describe()}, got {value!r}")
-
-    def _fits(self, value: Any) -> bool:
-        if self.kind == "bool":
-            return isinstance(value, bool)
-        if self.kind == "str":
-            return isinstance(value, str) and bool(value)
-        if self.kind == "sizes":
-            return (
-                isinstance(value, Sequence | ListConfig)
-                and not isinstance(value, str)
-                and all(_is_int(h) and h >= 1 for h in value)
-            )
-        if self.kind == "int" and not _is_int(value):
-            return False
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            return False
-        if not math.isfinite(value):
-            return False
-        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
-            return False
-        return self.high is None or (value < self.high if self.high_open else value <= self.high)
-
-
-def _fmt(bound: float) -> str:
-    return str(bound) if isinstance(bound, int) else f"{bound:g}"
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-#: The named ranges of :func:`settings`.
-KINDS: dict[str, Setting] = {
-    "positive_int": Setting("int", 1),
-    "count": Setting("int", 0),
-    "positive": Setting("float", 0, low_open=True),
-    "non_negative": Setting("float", 0),
-    "unit": Setting("float", 0, 1, low_open=True),
-    "probability": Setting("float", 0, 1),
-    "fraction": Setting("float", 0, 1, low_open=True, high_open=True),
-    "finite": Setting("float"),
-    "sizes": Setting("sizes"),
-    "flag": Setting("bool"),
-}
-
-
-def settings(**kinds: Sequence[str]) -> dict[str, Setting]:
-    """``{argument: Setting}`` from argument names grouped by their :data:`KINDS` entry.
-
-    Args:
-        **kinds: for each kind (``positive_int``, ``count``, ``positive``, ``non_negative``,
-            ``unit`` (0, 1], ``probability`` [0, 1], ``fraction`` (0, 1), ``finite``,
-            ``sizes``, ``flag``), the names of the arguments of that kind.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.components import settings
-        >>> settings(unit=("gamma",))["gamma"].describe()
-        'a number in (0, 1]'
-    """
-    return {name: KINDS[kind] for kind, names in kinds.items() for name in names}
-
-
-def choice(*choices: Any) -> Setting:
-    """The setting whose value must be one of ``choices``.
-
-    Args:
-        choices: the allowed values.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.components import choice
-        >>> choice("fused", "stock").check("update", "stock")
-    """
-    return Setting("choice", choices=tuple(choices))
-
-
-def check_arguments(specs: Mapping[str, Setting], values: Mapping[str, Any]) -> None:
-    """Checks each argument of ``specs`` present in ``values`` (a constructor's ``locals()``).
-
-    Args:
-        specs: ``{argument: Setting}``.
-        values: the arguments' values.
-
-    Raises:
-        ConfigError: naming the first argument that does not fit, its value and what was
-            expected.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.components import Setting, check_arguments
-        >>> try:
-        ...     check_arguments({"epochs": Setting("int", 1)}, {"epochs": True})
-        ... except ValueError as err:
-        ...     print(err)
-        epochs must be an integer >= 1, got True
-    """
-    for name, setting in specs.items():
-        if name in values:
-            setting.check(name, values[name])
 
 
 def group_target(cfg: Any, group: str) -> Callable[..., Any]:

@@ -12,15 +12,16 @@ from __future__ import annotations
 import difflib
 import inspect
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_mbmf.checks import ConfigError
+from torchrl_mbmf.checks import ConfigError, Setting
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
 from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
 from torchrl_mbmf.runs.resume import DEFAULT_TARGETS, RESUME_SAFE_SETTINGS, resume_changes
-from torchrl_mbmf.trainers.components import Setting, group_keys, group_target
+from torchrl_mbmf.trainers.components import group_keys, group_target
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 
 __all__ = [
@@ -30,6 +31,7 @@ __all__ = [
     "RESUME_SAFE_SETTINGS",
     "TRAIN_SETTINGS",
     "ConfigError",
+    "TrainSettings",
     "flatten_config",
     "resume_changes",
     "train_setting_keys",
@@ -315,4 +317,90 @@ def _check_world_model_variants(cfg: Any, method: str) -> None:
         raise ConfigError(
             "world_model.adaptive_horizon needs an ensemble (world_model.ensemble_size >= 2), "
             f"got ensemble_size={members}"
+        )
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """The trainer's own settings, parsed once from a validated config.
+
+    The component groups (``ppo``, ``sac``, ``world_model``, ``planner``, ``logger``) are
+    parsed by their builders; these are what the loop itself reads while it runs.
+
+    Args:
+        method: one of :data:`METHODS`.
+        seed: the run's seed.
+        total_steps: the real-step budget.
+        frames_per_batch: real steps per collected batch (``ppo.`` or ``sac.frames_per_batch``).
+        eval_episodes: evaluation episodes (0: no evaluation).
+        checkpoint_every: real steps between two checkpoints.
+        keep_last: checkpoints kept.
+        env_id: the env's id.
+        reward: the reward's name.
+        collector: ``"lean"`` or ``"stock"``.
+        device: the ``device`` setting.
+        threads: torch threads (``None``: torch's default).
+        logger_backend: the logger's backend.
+
+    Examples:
+        >>> from hydra import compose, initialize_config_dir
+        >>> from pathlib import Path
+        >>> with initialize_config_dir(str(Path("configs").resolve()), version_base="1.3"):
+        ...     cfg = compose("train", overrides=["method=sac", "env=pendulum"])
+        >>> settings = TrainSettings.from_config(cfg)
+        >>> settings.method, settings.family, settings.model_based
+        ('sac', 'sac', False)
+    """
+
+    method: str
+    seed: int
+    total_steps: int
+    frames_per_batch: int
+    eval_episodes: int
+    checkpoint_every: int
+    keep_last: int
+    env_id: str
+    reward: str
+    collector: str = "lean"
+    device: str = "cpu"
+    threads: int | None = None
+    logger_backend: str = "csv"
+
+    @property
+    def family(self) -> str:
+        """``"ppo"`` or ``"sac"``: the agent's config group."""
+        return "ppo" if self.method in PPO_METHODS else "sac"
+
+    @property
+    def model_based(self) -> bool:
+        """Whether the method plans with a learned model."""
+        return self.method in MODEL_BASED
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> TrainSettings:
+        """Validates ``cfg`` (:func:`validate_train_config`) and parses the trainer's settings.
+
+        Args:
+            cfg: the composed training config.
+
+        Raises:
+            ConfigError: naming the first invalid key.
+        """
+        validate_train_config(cfg)
+        family = "ppo" if cfg.method in PPO_METHODS else "sac"
+        threads = cfg.get("threads")
+        return cls(
+            method=str(cfg.method),
+            seed=int(cfg.seed),
+            total_steps=int(cfg.total_steps),
+            frames_per_batch=int(cfg[family].frames_per_batch),
+            eval_episodes=int(cfg.eval_episodes),
+            checkpoint_every=int(cfg.checkpoint.every_steps),
+            keep_last=int(cfg.checkpoint.keep_last),
+            env_id=str(cfg.env.id),
+            reward=str(cfg.reward.name),
+            collector=str(cfg.get("collector", "lean")),
+            device=str(cfg.get("device", "cpu")),
+            threads=None if threads is None else int(threads),
+            logger_backend=str(cfg.logger.backend),
         )

@@ -16,22 +16,27 @@ learnt from it) and ``round_end`` (its collector is closed).
 
 from __future__ import annotations
 
+import abc
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
 from torchrl_mbmf.trainers.progress import BAR_FORMAT, RunPlan, TrainerETA
-from torchrl_mbmf.trainers.schedule import Actor
+from torchrl_mbmf.trainers.schedule import Actor, Progress
+
+if TYPE_CHECKING:
+    from torchrl_mbmf.trainers.loop import Trainer
 
 __all__ = [
     "STAGES",
     "EpisodeLog",
     "Evaluation",
+    "Hook",
     "Hooks",
     "ModelData",
     "ModelRefit",
@@ -43,7 +48,33 @@ __all__ = [
 #: The stages a hook can run at, in loop order.
 STAGES: tuple[str, ...] = ("collected", "updated", "round_end")
 
-Hook = Callable[[Any, TensorDictBase | None], None]
+
+class Hook(abc.ABC):
+    """A step the loop runs once per collected batch at one stage, with the trainer.
+
+    Subclasses implement ``__call__(trainer, batch)``; they read and advance
+    ``trainer.progress`` and use the trainer's parts (``agent``, ``world``, ``schedule``).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import Hook
+        >>> class CountBatches(Hook):
+        ...     def __init__(self):
+        ...         self.count = 0
+        ...     def __call__(self, trainer, batch):
+        ...         self.count += 1
+        >>> hook = CountBatches()
+        >>> hook(None, None)
+        >>> hook.count
+        1
+    """
+
+    @abc.abstractmethod
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+
+
+#: A hook: a :class:`Hook` or any callable ``(trainer, batch) -> None``.
+HookFn = Hook | Callable[["Trainer", TensorDictBase | None], None]
 
 
 class Hooks:
@@ -59,21 +90,21 @@ class Hooks:
     """
 
     def __init__(self) -> None:
-        self.stages: dict[str, list[Hook]] = {stage: [] for stage in STAGES}
+        self.stages: dict[str, list[HookFn]] = {stage: [] for stage in STAGES}
 
-    def register(self, stage: str, hook: Hook) -> None:
+    def register(self, stage: str, hook: HookFn) -> None:
         """Appends ``hook`` (called as ``hook(trainer, batch)``) to ``stage``."""
         if stage not in self.stages:
             raise ValueError(f"stage={stage!r} is not a hook stage; allowed: {list(STAGES)}")
         self.stages[stage].append(hook)
 
-    def run(self, stage: str, trainer: Any, batch: TensorDictBase | None = None) -> None:
+    def run(self, stage: str, trainer: Trainer, batch: TensorDictBase | None = None) -> None:
         """Calls the hooks of ``stage`` in registration order."""
         for hook in self.stages[stage]:
             hook(trainer, batch)
 
 
-class ProgressBar:
+class ProgressBar(Hook):
     """A ``tqdm`` bar of real steps (``collected``); disabled with ``progress=false``.
 
     Its ETA is the run's phase-aware estimate (:class:`~torchrl_mbmf.trainers.progress.TrainerETA`:
@@ -83,6 +114,8 @@ class ProgressBar:
         total: the run's real-step budget.
         desc: the bar's label.
         enabled: whether the bar shows.
+        plan: the run's phases for the ETA (:meth:`RunPlan.from_config`); ``None``: no ETA.
+            Defaults to ``None``.
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import ProgressBar
@@ -90,8 +123,8 @@ class ProgressBar:
         True
     """
 
-    def __init__(self, total: int, desc: str, enabled: bool) -> None:
-        self.total, self.desc, self.enabled = total, desc, enabled
+    def __init__(self, total: int, desc: str, enabled: bool, plan: RunPlan | None = None) -> None:
+        self.total, self.desc, self.enabled, self.plan = total, desc, enabled, plan
         self.bar: tqdm | None = None
         self.eta: TrainerETA | None = None
 
@@ -107,12 +140,12 @@ class ProgressBar:
         )
         self.opened = time.perf_counter()
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if self.bar is not None:
-            if self.enabled:
+            if self.enabled and self.plan is not None:
                 if self.eta is None:
-                    self.eta = TrainerETA(RunPlan.from_config(trainer.cfg), start=self.opened)
+                    self.eta = TrainerETA(self.plan, start=self.opened)
                 self.bar.set_postfix_str(self.eta(trainer, batch), refresh=False)
             self.bar.update(batch.numel())
 
@@ -122,7 +155,7 @@ class ProgressBar:
             self.bar.close()
 
 
-class EpisodeLog:
+class EpisodeLog(Hook):
     """Logs each finished episode's return and the last-10 statistics (``collected``).
 
     Examples:
@@ -133,33 +166,32 @@ class EpisodeLog:
 
     WINDOW = 10
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         progress = trainer.progress
         done = batch.get(("next", "done"))[..., 0]
         if not done.any():
             return
         returns = batch.get(("next", "episode_reward"))[..., 0][done]
-        last = deque(progress["last_returns"], maxlen=self.WINDOW)
+        last = deque(progress.last_returns, maxlen=self.WINDOW)
         for r in returns.tolist():
-            progress["episodes"] += 1
+            progress.episodes += 1
             last.append(r)
             trainer.log({"train/episode_return": r})
-        progress["last_returns"] = list(last)
+        progress.last_returns = list(last)
         arr = np.asarray(last)
         trainer.log(
             {
                 "train/return_last10_mean": arr.mean(),
                 "train/return_last10_min": arr.min(),
                 "train/return_last10_max": arr.max(),
-                "train/episodes": progress["episodes"],
-                "train/real_steps_without_random": progress["real_steps"]
-                - progress["random_steps"],
+                "train/episodes": progress.episodes,
+                "train/real_steps_without_random": progress.real_steps - progress.random_steps,
             }
         )
 
 
-class ModelData:
+class ModelData(Hook):
     """Adds random-data and planner batches to the world model's dataset (``collected``).
 
     Also logs the planner's statistics of a planned batch.
@@ -170,7 +202,7 @@ class ModelData:
         True
     """
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if trainer.acting is Actor.AGENT:
             return
@@ -178,7 +210,7 @@ class ModelData:
         trainer.log(trainer.world.planner_scalars(batch))
 
 
-class ModelRefit:
+class ModelRefit(Hook):
     """Refits the world model when the schedule says so (``updated``).
 
     The refit's seed is ``seed + updates``; with an adaptive-horizon ensemble the refit
@@ -190,13 +222,13 @@ class ModelRefit:
         True
     """
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         if trainer.schedule.refit_due(trainer.progress, trainer.acting is Actor.PLANNER):
             trainer.refit_model()
 
 
-class StepTiming:
+class StepTiming(Hook):
     """Logs the batch's learning time and the run's steps per second (``updated``).
 
     Examples:
@@ -212,19 +244,19 @@ class StepTiming:
         """Counts the pace from now and ``steps`` real steps."""
         self.start, self.start_steps = time.perf_counter(), steps
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         now = time.perf_counter()
         trainer.log(
             {
                 "time/update_s": now - trainer.batch_time,
-                "time/steps_per_s": (trainer.progress["real_steps"] - self.start_steps)
+                "time/steps_per_s": (trainer.progress.real_steps - self.start_steps)
                 / max(1e-9, now - self.start),
             }
         )
 
 
-class Evaluation:
+class Evaluation(Hook):
     """Evaluates the policy alone every ``every`` real steps (``updated``).
 
     Args:
@@ -240,16 +272,16 @@ class Evaluation:
     def __init__(self, every: int, episodes: int) -> None:
         self.every, self.episodes = every, episodes
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         progress = trainer.progress
-        if progress["real_steps"] >= progress["next_eval"]:
+        if progress.real_steps >= progress.next_eval:
             if self.episodes > 0:
                 trainer.log({"eval/return": trainer.evaluate()})
-            progress["next_eval"] += self.every
+            progress.next_eval += self.every
 
 
-class SaveCheckpoint:
+class SaveCheckpoint(Hook):
     """Writes a checkpoint when one is due, between two collectors (``round_end``).
 
     Args:
@@ -257,7 +289,8 @@ class SaveCheckpoint:
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import SaveCheckpoint
-        >>> progress = {"real_steps": 450, "next_checkpoint": 400}
+        >>> from torchrl_mbmf.trainers.schedule import Progress
+        >>> progress = Progress(real_steps=450, next_checkpoint=400)
         >>> SaveCheckpoint(every=400).due(progress)
         True
     """
@@ -266,14 +299,14 @@ class SaveCheckpoint:
         self.every = every
 
     @staticmethod
-    def due(progress: dict[str, Any]) -> bool:
+    def due(progress: Progress) -> bool:
         """Whether the run has passed its next checkpoint step."""
-        return progress["real_steps"] >= progress["next_checkpoint"]
+        return progress.real_steps >= progress.next_checkpoint
 
-    def __call__(self, trainer: Any, batch: TensorDictBase | None) -> None:
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
         """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
         progress = trainer.progress
         if self.due(progress):
-            while progress["next_checkpoint"] <= progress["real_steps"]:
-                progress["next_checkpoint"] += self.every
+            while progress.next_checkpoint <= progress.real_steps:
+                progress.next_checkpoint += self.every
             trainer.save_checkpoint()

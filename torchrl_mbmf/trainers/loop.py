@@ -11,20 +11,24 @@ from __future__ import annotations
 import functools
 import hashlib
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
+from torchrl.collectors import Collector
 from torchrl.envs.utils import RandomPolicy
 
+from torchrl_mbmf.checks import check_finite
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
 from torchrl_mbmf.runs.claim import claim_run_folder
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
-from torchrl_mbmf.trainers.agents import make_agent
+from torchrl_mbmf.trainers.agents import Agent, make_agent
 from torchrl_mbmf.trainers.build import (
     evaluate_policy,
     make_collector,
@@ -33,47 +37,32 @@ from torchrl_mbmf.trainers.build import (
     seed_everything,
 )
 from torchrl_mbmf.trainers.components import instantiate_group
-from torchrl_mbmf.trainers.config import (
-    MODEL_BASED,
-    PPO_METHODS,
-    flatten_config,
-    validate_train_config,
-)
+from torchrl_mbmf.trainers.config import TrainSettings, flatten_config
 from torchrl_mbmf.trainers.device import resolve_device
-from torchrl_mbmf.trainers.guards import check_finite
-from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
+from torchrl_mbmf.trainers.planning import WorldModelPart
+from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 from torchrl_mbmf.trainers.signals import StopRequest
 
-__all__ = ["Trainer", "seed_everything"]
+__all__ = [
+    "Trainer",
+    "make_run_checkpoint",
+    "parameters_digest",
+    "run_summary",
+    "seed_everything",
+    "time_breakdown",
+]
 
 
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
 
-    Methods (thesis sections 5.1, 5.4):
-
-    - ``ppo``: stock :class:`~torchrl.objectives.ClipPPOLoss` with GAE on real data.
-    - ``ppo_mpc``: fit the world model on random-policy data (those real steps count), then the
-      :class:`~torchrl_mbmf.modules.PolicyGuidedMPCPlanner` collects ``ppo.frames_per_batch``
-      real steps per PPO update; all real transitions join the dataset, the model is refit on
-      it every ``world_model.refit_every`` updates; after ``planning_updates`` updates the same
-      actor and critic continue as pure PPO on the real env (warm start).
-    - ``mpc``: as ``ppo_mpc`` with the :class:`~torchrl_mbmf.modules.RandomShootingMPCPlanner`
-      (PPO trains on its transitions, as in the thesis).
-    - ``sac`` / ``sac_mpc``: stock :class:`~torchrl.objectives.SACLoss` with a replay buffer;
-      ``sac_mpc`` acts through the policy-guided planner with the SAC actor, starts its replay
-      buffer with the random-data steps and refits the model every
-      ``sac.refit_every_steps`` real steps.
-
-    Every real env step counts toward ``total_steps``, the random-data steps included.
-    Checkpoints (``torchrl.checkpoint``, atomic, rotated) are written every
-    ``checkpoint.every_steps`` real steps, between two collectors: the collector is closed and
-    the next one starts from envs reseeded with ``seed + real_steps``, so the episode in
-    progress is truncated there (GAE bootstraps it like any batch end). This happens in an
-    uninterrupted run exactly as in a resumed one, so a run killed and resumed from its latest
-    checkpoint ends with the same weights as one that never stopped (on CPU, same thread count).
-    A new ``Trainer`` on the same ``run_dir`` resumes from the latest checkpoint (see
-    :class:`~torchrl_mbmf.runs.resume.RunCheckpoint`).
+    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` and ``sac_mpc`` (thesis sections 5.1, 5.4): the
+    :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule` says which policy acts, the agent
+    learns from every batch, the hooks log, refit the model, evaluate and checkpoint. Every
+    real env step counts toward ``total_steps``. A new ``Trainer`` on the same ``run_dir``
+    resumes from its latest checkpoint and ends with the same weights as an uninterrupted
+    run (:class:`~torchrl_mbmf.runs.checkpoint.RunCheckpoint`). The methods and why
+    checkpoints end the episode in progress: ``docs/design/loop.md``.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -95,24 +84,23 @@ class Trainer:
     #: The measured parts of :meth:`time_breakdown` (the rest is ``other_s``).
     TIME_KEYS: tuple[str, ...] = ("env_s", "act_s", "update_s", "refit_s")
 
-    def __init__(self, cfg: Any, run_dir: Path) -> None:
-        validate_train_config(cfg)
-        self.cfg = cfg
+    def __init__(self, cfg: DictConfig, run_dir: Path) -> None:
+        # the config is read here only: the loop reads the parsed settings and the parts
+        self.settings = settings = TrainSettings.from_config(cfg)
         self.run_dir = Path(run_dir)
-        seed_everything(int(cfg.seed))
+        seed_everything(settings.seed)
         self.times = dict.fromkeys(self.TIME_KEYS, 0.0)
-        if cfg.get("threads") is not None:
-            torch.set_num_threads(int(cfg.threads))
+        if settings.threads is not None:
+            torch.set_num_threads(settings.threads)
         # networks, world model, planner and updates; the MuJoCo envs stay on the CPU
-        self.device = resolve_device(cfg.get("device", "cpu"))
-        self.env = make_train_env(cfg, int(cfg.seed))
-        self.eval_env = make_train_env(cfg, int(cfg.seed) + 1000, num_envs=1)
+        self.device = resolve_device(settings.device)
+        self.env = make_train_env(cfg, settings.seed)
+        self.eval_env = make_train_env(cfg, settings.seed + 1000, num_envs=1)
         # The config groups' components (components.instantiate_group): their constructors
         # check every argument, so a bad value stops the run here, before any work.
-        family = "ppo" if cfg.method in PPO_METHODS else "sac"
-        self.agent = make_agent(family, self.env, cfg, self.device)
-        self.world = None
-        if cfg.method in MODEL_BASED:
+        self.agent: Agent = make_agent(settings.family, self.env, cfg, self.device)
+        self.world: WorldModelPart | None = None
+        if settings.model_based:
             self.world = instantiate_group(
                 cfg,
                 "world_model",
@@ -120,27 +108,19 @@ class Trainer:
                 agent=self.agent,
                 device=self.device,
                 planner=functools.partial(instantiate_group, cfg, "planner"),
-                seed=int(cfg.seed),
-                guided=cfg.method != "mpc",
+                seed=settings.seed,
+                guided=settings.method != "mpc",
             )
         self.schedule = PhaseSchedule.from_config(cfg)
-        self.progress: dict[str, Any] = {
-            "real_steps": 0,
-            "random_steps": 0,
-            "updates": 0,
-            "phase": self.schedule.first_phase().value,
-            "episodes": 0,
-            "last_returns": [],
-            "next_eval": 0,
-            "next_checkpoint": int(cfg.checkpoint.every_steps),
-            "next_refit": 0,
-            "switch_step": None,
-            "fingerprint": fingerprint(cfg),
+        self.progress = Progress(
+            phase=self.schedule.first_phase().value,
+            next_checkpoint=settings.checkpoint_every,
+            fingerprint=fingerprint(cfg),
             # the whole resolved config: a resume refuses any change that affects training
-            "config": flatten_config(cfg),
-        }
-        self.frames_per_batch = int(cfg[family].frames_per_batch)
-        self.total_steps = int(cfg.total_steps)
+            config=flatten_config(cfg),
+        )
+        self.frames_per_batch = settings.frames_per_batch
+        self.total_steps = settings.total_steps
         # The folder is this run's (locked; a finished or foreign run refused) before anything
         # is written to it; a refused setting above has written nothing.
         self.lock = claim_run_folder(
@@ -148,45 +128,22 @@ class Trainer:
         )
         self.logger = instantiate_group(cfg, "logger", run_dir=self.run_dir)
         self.hooks, named = make_hooks(cfg, self.schedule.model_based)
-        self.bar, self.timing, self.checkpoints = (
-            named["bar"],
-            named["timing"],
-            named["checkpoints"],
-        )
+        self.bar, self.timing = named["bar"], named["timing"]
+        self.checkpoints = named["checkpoints"]
         self.acting = self.schedule.actor(self.progress)
         self.batch_time = time.perf_counter()
-        self.run_checkpoint = self._make_checkpoint()
+        self.run_checkpoint = make_run_checkpoint(self)
         self.resumed = self.run_checkpoint.resume()
         if self.resumed and self.world is not None:
             self.world.restore(self.progress)
         write_run_record(self.run_dir, cfg)
 
-    def _make_checkpoint(self) -> RunCheckpoint:
-        tensors = dict(self.agent.checkpoint_components())
-        if self.world is not None:
-            tensors.update(self.world.checkpoint_components())
-        return RunCheckpoint(
-            self.run_dir,
-            self.progress,
-            tensors,
-            self.logger,
-            keep_last=int(self.cfg.checkpoint.keep_last),
-            dataset=None if self.world is None else self.world.dataset,
-            dataset_needed=self.schedule.dataset_needed,
-            replay=None
-            if self.agent.replay is None
-            else (self.agent.replay, self.agent.loss.in_keys),
-            backend=self.cfg.logger.backend,
-        )
-
-    # ----------------------------------------------------------------- loop
-
     def count(self, batch: TensorDictBase, random: bool = False) -> None:
         """Counts a collected batch's real steps and runs the ``collected`` hooks."""
         self.batch_time = time.perf_counter()
-        self.progress["real_steps"] += batch.numel()
+        self.progress.real_steps += batch.numel()
         if random:
-            self.progress["random_steps"] += batch.numel()
+            self.progress.random_steps += batch.numel()
         self.hooks.run("collected", self, batch)
 
     def collect_random(self) -> None:
@@ -206,14 +163,14 @@ class Trainer:
     def learn(self, batch: TensorDictBase) -> None:
         """The agent's update on ``batch`` (timed), then the ``updated`` hooks."""
         t_update = time.perf_counter()
-        stats = self.agent.update(batch, self.progress["real_steps"])
+        stats = self.agent.update(batch, self.progress.real_steps)
         if stats is not None:
-            self.progress["updates"] += 1
+            self.progress.updates += 1
             self.log(stats)
             log_std = self.agent.log_std(batch)
             scalars = {} if log_std is None else {"train/policy_log_std": log_std}
             if self.agent.logs_update_count:
-                scalars["train/updates"] = self.progress["updates"]
+                scalars["train/updates"] = self.progress.updates
             self.log(scalars)
         self.times["update_s"] += time.perf_counter() - t_update
         self.hooks.run("updated", self, batch)
@@ -226,7 +183,7 @@ class Trainer:
         self.acting = self.schedule.actor(self.progress)
         # Every collector starts from freshly seeded envs, so a resumed run continues
         # exactly like an uninterrupted one (checkpoints happen between collectors).
-        self.env.set_seed(int(self.cfg.seed) + self.progress["real_steps"])
+        self.env.set_seed(self.settings.seed + self.progress.real_steps)
         collector = self.collector(self.acting, self.frames_per_batch, -1)
         lean = isinstance(collector, LeanCollector)
         t_wait = time.perf_counter()
@@ -244,7 +201,7 @@ class Trainer:
     def round_over(self) -> bool:
         """Whether the current collector stops: budget, checkpoint or schedule."""
         progress = self.progress
-        if progress["real_steps"] >= self.total_steps or self.checkpoints.due(progress):
+        if progress.real_steps >= self.total_steps or self.checkpoints.due(progress):
             return True
         return self.schedule.round_over(progress, self.acting)
 
@@ -262,18 +219,18 @@ class Trainer:
             self.lock.release()
 
     def _train(self, stop: StopRequest) -> dict[str, Any]:
-        self.bar.open(self.progress["real_steps"])
-        self.timing.open(self.progress["real_steps"])
+        self.bar.open(self.progress.real_steps)
+        self.timing.open(self.progress.real_steps)
         start = time.perf_counter()
         if self.schedule.phase(self.progress) is Phase.RANDOM:
             self.collect_random()
-        while self.progress["real_steps"] < self.total_steps:
-            saved_before = self.progress["next_checkpoint"]
+        while self.progress.real_steps < self.total_steps:
+            saved_before = self.progress.next_checkpoint
             self.collect_round()
             stop.keep_installed()
-            if stop.requested and self.progress["next_checkpoint"] != saved_before:
+            if stop.requested and self.progress.next_checkpoint != saved_before:
                 self.bar.close()
-                steps = self.progress["real_steps"]
+                steps = self.progress.real_steps
                 return {"stopped_by": stop.requested, "real_steps": steps, "checkpoint": steps}
         self.bar.close()
         self.save_checkpoint()
@@ -282,21 +239,21 @@ class Trainer:
     # ------------------------------------------------------------- services
     def refit_model(self) -> None:
         """Refits the world model on every real transition so far (and logs the fit)."""
-        seed = int(self.cfg.seed) + self.progress["updates"]
+        seed = self.settings.seed + self.progress.updates
         scalars = self.world.refit(seed, self.progress, self.run_dir)
         self.times["refit_s"] += scalars["time/model_fit_s"]
         self.log(scalars)
 
-    def collector(self, acting: Actor, frames: int, total: int) -> Any:
+    def collector(self, acting: Actor, frames: int, total: int) -> Collector | LeanCollector:
         """A collector of ``frames``-frame batches run by the policy ``acting`` names."""
         if acting is Actor.RANDOM:
             policy = RandomPolicy(self.env.full_action_spec)
         else:
             policy = self.world.planner if acting is Actor.PLANNER else self.agent.actor
-        kind = self.cfg.get("collector", "lean")
+        kind = self.settings.collector
         return make_collector(self.env, policy, frames, total, self.device, kind)
 
-    def close_collector(self, collector: Any) -> None:
+    def close_collector(self, collector: Collector | LeanCollector) -> None:
         """Adds a lean collector's env and policy time, then shuts the collector down."""
         times = getattr(collector, "times", None)
         if times is not None:
@@ -310,7 +267,7 @@ class Trainer:
         Raises:
             TrainingDivergedError: if a value is NaN or infinite (nothing of the call is logged).
         """
-        step = self.progress["real_steps"] if step is None else step
+        step = self.progress.real_steps if step is None else step
         values = {name: float(value) for name, value in metrics.items()}
         check_finite(values, step)
         if self.logger is None:
@@ -320,63 +277,135 @@ class Trainer:
 
     def evaluate(self) -> float:
         """Mean return of the policy alone, deterministic, over ``eval_episodes`` episodes."""
-        steps = self.progress["real_steps"]
-        self.eval_env.set_seed(int(self.cfg.seed) + 1000 + steps)
-        kind = self.cfg.get("collector", "lean")
-        episodes = int(self.cfg.eval_episodes)
-        return evaluate_policy(self.eval_env, self.agent.actor, episodes, self.device, kind, steps)
+        steps, s = self.progress.real_steps, self.settings
+        self.eval_env.set_seed(s.seed + 1000 + steps)
+        return evaluate_policy(
+            self.eval_env, self.agent.actor, s.eval_episodes, self.device, s.collector, steps
+        )
 
     def save_checkpoint(self) -> None:
         """Atomically writes a rotated checkpoint of everything needed to continue."""
         self.run_checkpoint.save(self.agent.actor)
 
-    # -------------------------------------------------------------- summary
     def write_summary(self, seconds: float) -> dict[str, Any]:
-        """The run's summary (also written to ``summary.json``)."""
-        cfg, progress = self.cfg, self.progress
-        last = progress["last_returns"]
-        summary = {
-            "method": cfg.method,
-            "env": cfg.env.id,
-            "reward": cfg.reward.name,
-            "seed": int(cfg.seed),
-            **{k: progress[k] for k in ("real_steps", "random_steps", "updates", "episodes")},
-            "switch_step": progress["switch_step"],
-            "last10_mean_return": float(np.mean(last)) if last else None,
-            "final_eval_return": self.evaluate() if int(cfg.eval_episodes) > 0 else None,
-            "params_sha256": self.parameters_digest(),
-            "seconds": seconds,
-            "resumed": self.resumed,
-        }
-        summary["time_breakdown"] = self.time_breakdown(summary["seconds"])
+        """Writes and returns the run's summary (:func:`run_summary`) after ``seconds``."""
+        final = self.evaluate() if self.settings.eval_episodes > 0 else None
+        summary = run_summary(
+            self.settings, self.progress, final, self.parameters_digest(), seconds, self.resumed
+        )
+        summary["time_breakdown"] = time_breakdown(self.times, seconds)
         RunFolder(self.run_dir).write_summary(summary)
         return summary
 
-    def time_breakdown(self, seconds: float) -> dict[str, float]:
-        """Where this process' training time went, in seconds.
-
-        ``env_s``: real env steps with their transforms (with the stock collector, the policy's
-        time too); ``act_s``: the actor or planner; ``update_s``: PPO/SAC updates; ``refit_s``:
-        world-model refits; ``other_s``: the rest (logging, evaluation, checkpoints, datasets).
-
-        Args:
-            seconds: the wall time the breakdown splits.
-
-        Examples:
-            >>> from torchrl_mbmf.trainers import Trainer
-            >>> sorted(Trainer.TIME_KEYS)
-            ['act_s', 'env_s', 'refit_s', 'update_s']
-        """
-        out = {key: float(self.times[key]) for key in self.TIME_KEYS}
-        out["other_s"] = max(0.0, float(seconds) - sum(out.values()))
-        return out
-
     def parameters_digest(self) -> str:
         """SHA-256 of every trained tensor (policy, critics, world model): equal runs match."""
-        digest = hashlib.sha256()
         modules = [self.agent.loss] + ([self.world.model] if self.world is not None else [])
-        for module in modules:
-            for name, tensor in sorted(module.state_dict().items()):
-                digest.update(name.encode())
-                digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-        return digest.hexdigest()
+        return parameters_digest(modules)
+
+
+def make_run_checkpoint(trainer: Trainer) -> RunCheckpoint:
+    """The checkpoint of a trainer's run (the parts in :mod:`torchrl_mbmf.runs.checkpoint`).
+
+    Args:
+        trainer: the trainer (its parts are built).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.loop import make_run_checkpoint
+        >>> callable(make_run_checkpoint)
+        True
+    """
+    agent, world = trainer.agent, trainer.world
+    tensors = dict(agent.checkpoint_components())
+    if world is not None:
+        tensors.update(world.checkpoint_components())
+    return RunCheckpoint(
+        trainer.run_dir,
+        trainer.progress,
+        tensors,
+        trainer.logger,
+        keep_last=trainer.settings.keep_last,
+        dataset=None if world is None else world.dataset,
+        dataset_needed=trainer.schedule.dataset_needed,
+        replay=None if agent.replay is None else (agent.replay, agent.loss.in_keys),
+        backend=trainer.settings.logger_backend,
+    )
+
+
+def run_summary(
+    settings: TrainSettings,
+    progress: Progress,
+    final_eval_return: float | None,
+    params_sha256: str,
+    seconds: float,
+    resumed: bool,
+) -> dict[str, Any]:
+    """A finished run's summary: what ran, its counts, its returns, its weights' digest.
+
+    Args:
+        settings: the run's settings.
+        progress: the loop state at the end.
+        final_eval_return: the final evaluation's mean return (``None``: no evaluation).
+        params_sha256: :func:`parameters_digest` of the trained modules.
+        seconds: the training wall time.
+        resumed: whether this process resumed from a checkpoint.
+
+    Examples:
+        >>> settings = TrainSettings("ppo", 0, 400, 200, 0, 400, 2, "Pendulum-v1", "default")
+        >>> summary = run_summary(settings, Progress(real_steps=400), None, "ab", 1.5, False)
+        >>> summary["real_steps"], summary["last10_mean_return"]
+        (400, None)
+    """
+    last = progress.last_returns
+    return {
+        "method": settings.method,
+        "env": settings.env_id,
+        "reward": settings.reward,
+        "seed": settings.seed,
+        **{k: progress[k] for k in ("real_steps", "random_steps", "updates", "episodes")},
+        "switch_step": progress.switch_step,
+        "last10_mean_return": float(np.mean(last)) if last else None,
+        "final_eval_return": final_eval_return,
+        "params_sha256": params_sha256,
+        "seconds": seconds,
+        "resumed": resumed,
+    }
+
+
+def time_breakdown(times: Mapping[str, float], seconds: float) -> dict[str, float]:
+    """Where a process' training time went, in seconds.
+
+    ``env_s``: real env steps with their transforms (with the stock collector, the policy's
+    time too); ``act_s``: the actor or planner; ``update_s``: PPO/SAC updates; ``refit_s``:
+    world-model refits; ``other_s``: the rest (logging, evaluation, checkpoints, datasets).
+
+    Args:
+        times: the measured seconds of :data:`Trainer.TIME_KEYS`.
+        seconds: the wall time the breakdown splits.
+
+    Examples:
+        >>> time_breakdown({"env_s": 1.0, "act_s": 2.0, "update_s": 3.0, "refit_s": 0.0}, 10)
+        {'env_s': 1.0, 'act_s': 2.0, 'update_s': 3.0, 'refit_s': 0.0, 'other_s': 4.0}
+    """
+    out = {key: float(times[key]) for key in Trainer.TIME_KEYS}
+    out["other_s"] = max(0.0, float(seconds) - sum(out.values()))
+    return out
+
+
+def parameters_digest(modules: Sequence[torch.nn.Module]) -> str:
+    """SHA-256 of every tensor of ``modules``' state dicts, in name order.
+
+    Args:
+        modules: the modules (their ``state_dict``).
+
+    Examples:
+        >>> a, b = torch.nn.Linear(2, 1), torch.nn.Linear(2, 1)
+        >>> _ = b.load_state_dict(a.state_dict())
+        >>> parameters_digest([a]) == parameters_digest([b])
+        True
+    """
+    digest = hashlib.sha256()
+    for module in modules:
+        for name, tensor in sorted(module.state_dict().items()):
+            digest.update(name.encode())
+            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()

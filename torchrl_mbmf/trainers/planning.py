@@ -8,7 +8,7 @@ arguments. The loop sees :class:`WorldModelPart`.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
+from torchrl_mbmf.checks import Setting, check_arguments, settings
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
 from torchrl_mbmf.envs.factory import action_bounds, env_metadata
@@ -29,7 +30,8 @@ from torchrl_mbmf.modules.planners import (
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
-from torchrl_mbmf.trainers.components import Setting, check_arguments, settings
+from torchrl_mbmf.trainers.agents import Agent
+from torchrl_mbmf.trainers.schedule import Progress
 from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.world_model.snapshots import heldout_open_loop_errors, save_fit_snapshot
@@ -240,7 +242,7 @@ class WorldModelPart:
     def __init__(
         self,
         env: EnvBase,
-        agent: Any,
+        agent: Agent,
         device: torch.device,
         planner: Callable[..., TensorDictModuleBase],
         seed: int,
@@ -302,7 +304,7 @@ class WorldModelPart:
         """The tensor state a checkpoint holds (the dataset apart)."""
         return {"world_model": self.model, "model_optim": self.optim}
 
-    def restore(self, progress: Mapping[str, Any]) -> None:
+    def restore(self, progress: Progress) -> None:
         """Sets the planner's calibrated threshold from a resumed progress record."""
         threshold = progress.get(self.CALIBRATED)
         if threshold is not None:
@@ -323,9 +325,7 @@ class WorldModelPart:
                 out[f"planner/{name}"] = batch["planner", name].float().mean()
         return out
 
-    def refit(
-        self, seed: int, progress: dict[str, Any], run_dir: Path | None = None
-    ) -> dict[str, float]:
+    def refit(self, seed: int, progress: Progress, run_dir: Path | None = None) -> dict[str, float]:
         """Refits the model on every real transition so far; returns the scalars to log.
 
         With ``world_model.adaptive_horizon`` the ensemble's disagreement threshold is

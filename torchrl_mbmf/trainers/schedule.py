@@ -9,12 +9,15 @@ random-policy data for the first world model (``RANDOM``), plan (``PLANNING``) a
 
 from __future__ import annotations
 
+import dataclasses
 import enum
-from collections.abc import Mapping, MutableMapping
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["Actor", "Phase", "PhaseSchedule"]
+from omegaconf import DictConfig
+
+__all__ = ["Actor", "Phase", "PhaseSchedule", "Progress"]
 
 
 class Phase(enum.StrEnum):
@@ -53,12 +56,118 @@ class Actor(enum.Enum):
     AGENT = "agent"
 
 
+#: Entries written only once set (a checkpoint without them predates the first fit).
+_OPTIONAL_ENTRIES: tuple[str, ...] = ("config", "disagreement_threshold", "last_fit_transitions")
+
+
+@dataclass
+class Progress:
+    """The loop's state: counts, phase, next due steps; what a checkpoint's ``progress`` holds.
+
+    Saved as one JSON object (:meth:`to_dict`, the keys are the field names) and restored in
+    place (:meth:`load_dict`), so checkpoints written when it was a plain ``dict`` load
+    unchanged; entries it does not know are kept in :attr:`extra` and written back.
+    ``progress["real_steps"]`` reads a field as the checkpoint code does.
+
+    Args:
+        real_steps: real env steps so far, random-data steps included.
+        random_steps: random-policy steps of the first model's data.
+        updates: agent updates so far.
+        phase: the :class:`Phase` value.
+        episodes: finished training episodes.
+        last_returns: returns of the last finished episodes (up to 10).
+        next_eval: real step of the next evaluation.
+        next_checkpoint: real step of the next checkpoint.
+        next_refit: real step of the next step-based refit (SAC methods).
+        switch_step: real step at which planning ended (``None`` before).
+        fingerprint: settings a checkpoint must agree on (older checkpoints).
+        config: the flattened config the run was written with (``None``: predates it).
+        disagreement_threshold: the calibrated ensemble threshold (``None``: not calibrated).
+        last_fit_transitions: the dataset's length at the last model fit (``None``: no fit).
+        extra: entries of an older or newer checkpoint this class does not know.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.schedule import Progress
+        >>> progress = Progress(real_steps=400, phase="planning")
+        >>> progress.real_steps += 200
+        >>> saved = progress.to_dict()
+        >>> restored = Progress()
+        >>> restored.load_dict(saved)
+        >>> restored == progress, restored["real_steps"]
+        (True, 600)
+    """
+
+    real_steps: int = 0
+    random_steps: int = 0
+    updates: int = 0
+    phase: str = Phase.MODEL_FREE.value
+    episodes: int = 0
+    last_returns: list[float] = field(default_factory=list)
+    next_eval: int = 0
+    next_checkpoint: int = 0
+    next_refit: int = 0
+    switch_step: int | None = None
+    fingerprint: dict[str, Any] = field(default_factory=dict)
+    config: dict[str, Any] | None = None
+    disagreement_threshold: float | None = None
+    last_fit_transitions: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def _names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls) if f.name != "extra")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object a checkpoint stores (unset optional entries left out)."""
+        out = {name: getattr(self, name) for name in self._names()}
+        for name in _OPTIONAL_ENTRIES:
+            if out[name] is None:
+                del out[name]
+        return {**self.extra, **out}
+
+    def load_dict(self, value: Mapping[str, Any]) -> None:
+        """Replaces the whole state with a stored one (entries it lacks take their defaults).
+
+        Args:
+            value: a stored progress record (:meth:`to_dict`, or an older checkpoint's).
+        """
+        fresh = Progress()
+        names = self._names()
+        for name in names:
+            setattr(self, name, value.get(name, getattr(fresh, name)))
+        self.extra = {k: v for k, v in value.items() if k not in names}
+
+    def __getitem__(self, key: str) -> Any:
+        if key in self._names():
+            return getattr(self, key)
+        return self.extra[key]
+
+    def __setitem__(self, key: str, value: Any) -> None:
+        if key in self._names():
+            setattr(self, key, value)
+        else:
+            self.extra[key] = value
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """The entry ``key`` (a field or an extra entry), ``default`` if unset.
+
+        Args:
+            key: the entry's name.
+            default: returned when the entry is missing or ``None``. Defaults to ``None``.
+        """
+        try:
+            value = self[key]
+        except KeyError:
+            return default
+        return default if value is None else value
+
+
 @dataclass(frozen=True)
 class PhaseSchedule:
     """When each phase starts and ends and when the world model refits.
 
-    A progress record (the checkpointed ``dict`` of the loop) holds the state: ``phase``,
-    ``real_steps``, ``updates`` and ``next_refit``; the schedule only reads and advances it.
+    A :class:`Progress` (the loop's checkpointed state) holds ``phase``, ``real_steps``,
+    ``updates`` and ``next_refit``; the schedule only reads and advances it.
 
     Args:
         model_based: whether the run has a world model (starts in ``Phase.RANDOM``).
@@ -68,12 +177,12 @@ class PhaseSchedule:
         init_random_frames: real steps a model-free run acts randomly first.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
+        >>> from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
         >>> schedule = PhaseSchedule(model_based=True, planning_updates=2, refit_every_updates=1)
-        >>> progress = {"phase": schedule.first_phase().value, "real_steps": 0, "updates": 0}
+        >>> progress = Progress(phase=schedule.first_phase().value)
         >>> schedule.phase(progress), schedule.actor(progress)
         (<Phase.RANDOM: 'random'>, <Actor.RANDOM: 'random'>)
-        >>> progress.update(phase="planning", updates=2)
+        >>> progress.phase, progress.updates = "planning", 2
         >>> schedule.switch_due(progress)
         True
     """
@@ -95,7 +204,7 @@ class PhaseSchedule:
             )
 
     @classmethod
-    def from_config(cls, cfg: Any) -> PhaseSchedule:
+    def from_config(cls, cfg: DictConfig) -> PhaseSchedule:
         """The schedule of ``cfg.method``: each method reads only its own settings.
 
         Args:
@@ -125,39 +234,39 @@ class PhaseSchedule:
         return Phase.RANDOM if self.model_based else Phase.MODEL_FREE
 
     @staticmethod
-    def phase(progress: Mapping[str, Any]) -> Phase:
+    def phase(progress: Progress) -> Phase:
         """The phase recorded in ``progress``."""
-        return Phase(progress["phase"])
+        return Phase(progress.phase)
 
-    def actor(self, progress: MutableMapping[str, Any]) -> Actor:
+    def actor(self, progress: Progress) -> Actor:
         """Which policy collects the next real steps."""
         phase = self.phase(progress)
         if phase is Phase.PLANNING:
             return Actor.PLANNER
-        if phase is Phase.RANDOM or progress["real_steps"] < self.init_random_frames:
+        if phase is Phase.RANDOM or progress.real_steps < self.init_random_frames:
             return Actor.RANDOM
         return Actor.AGENT
 
-    def planning_done(self, progress: MutableMapping[str, Any]) -> bool:
+    def planning_done(self, progress: Progress) -> bool:
         """Whether the planning phase has run its ``planning_updates`` updates."""
-        return self.planning_updates is not None and progress["updates"] >= self.planning_updates
+        return self.planning_updates is not None and progress.updates >= self.planning_updates
 
-    def switch_due(self, progress: MutableMapping[str, Any]) -> bool:
+    def switch_due(self, progress: Progress) -> bool:
         """Whether the run is planning and its planning phase is over (warm start next)."""
         return self.phase(progress) is Phase.PLANNING and self.planning_done(progress)
 
-    def start_planning(self, progress: MutableMapping[str, Any]) -> None:
+    def start_planning(self, progress: Progress) -> None:
         """Ends the random-data phase: planning from here, the first step-based refit set."""
-        progress["phase"] = Phase.PLANNING.value
+        progress.phase = Phase.PLANNING.value
         if self.refit_every_steps is not None:
-            progress["next_refit"] = progress["real_steps"] + self.refit_every_steps
+            progress.next_refit = progress.real_steps + self.refit_every_steps
 
-    def start_model_free(self, progress: MutableMapping[str, Any]) -> None:
+    def start_model_free(self, progress: Progress) -> None:
         """Ends planning: the agent alone acts from here (records ``switch_step``)."""
-        progress["phase"] = Phase.MODEL_FREE.value
-        progress["switch_step"] = progress["real_steps"]
+        progress.phase = Phase.MODEL_FREE.value
+        progress.switch_step = progress.real_steps
 
-    def dataset_needed(self, progress: Mapping[str, Any]) -> bool:
+    def dataset_needed(self, progress: Progress) -> bool:
         """Whether the real-transition dataset can still be used (a checkpoint must hold it).
 
         Only a model-based run that has switched to the model-free phase is done with it:
@@ -168,14 +277,14 @@ class PhaseSchedule:
             progress: the progress record.
 
         Examples:
-            >>> from torchrl_mbmf.trainers.schedule import PhaseSchedule
+            >>> from torchrl_mbmf.trainers.schedule import PhaseSchedule, Progress
             >>> s = PhaseSchedule(model_based=True, planning_updates=2, refit_every_updates=1)
-            >>> s.dataset_needed({"phase": "planning"}), s.dataset_needed({"phase": "model_free"})
+            >>> s.dataset_needed(Progress(phase="planning")), s.dataset_needed(Progress())
             (True, False)
         """
         return self.model_based and self.phase(progress) is not Phase.MODEL_FREE
 
-    def refit_due(self, progress: MutableMapping[str, Any], planned: bool) -> bool:
+    def refit_due(self, progress: Progress, planned: bool) -> bool:
         """After an update: whether the model refits now (advances ``next_refit`` if so).
 
         Args:
@@ -186,14 +295,14 @@ class PhaseSchedule:
             return False
         if self.refit_every_updates is not None:
             # no refit once the planning phase is over: nothing plans with it again
-            due = progress["updates"] % self.refit_every_updates == 0
+            due = progress.updates % self.refit_every_updates == 0
             return due and not self.planning_done(progress)
-        if self.refit_every_steps is not None and progress["real_steps"] >= progress["next_refit"]:
-            progress["next_refit"] += self.refit_every_steps
+        if self.refit_every_steps is not None and progress.real_steps >= progress.next_refit:
+            progress.next_refit += self.refit_every_steps
             return True
         return False
 
-    def round_over(self, progress: MutableMapping[str, Any], actor: Actor) -> bool:
+    def round_over(self, progress: Progress, actor: Actor) -> bool:
         """Whether the collector that ``actor`` runs stops after the batch just used.
 
         It stops when the policy changes (the phase switch included) and after every batch
