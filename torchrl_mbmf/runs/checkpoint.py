@@ -37,7 +37,7 @@ from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.runs.export import save_policy
 from torchrl_mbmf.runs.layout import CHECKPOINTS
 from torchrl_mbmf.runs.logs import append_resume_log, cut_csv_logs
-from torchrl_mbmf.runs.resume import RESUME_SAFE_SETTINGS, resume_changes
+from torchrl_mbmf.runs.resume import RESUME_SAFE_SETTINGS, describe_refused, resume_changes
 from torchrl_mbmf.runs.storage import (
     DatasetCheckpointAdapter,
     ReplayCheckpointAdapter,
@@ -254,10 +254,7 @@ class RunCheckpoint:
         else:
             refused, allowed = resume_changes(saved, config)
         if refused:
-            lines = "\n".join(
-                f"  was written with {key}={old!r}, this run has {key}={new!r}"
-                for key, (old, new) in refused.items()
-            )
+            lines = describe_refused(refused)
             raise ConfigError(
                 f"checkpoint {latest} was written with other settings that change training:\n"
                 f"{lines}\nuse another run_dir or the original config (settings a resume may "

@@ -48,7 +48,7 @@ from torchrl_mbmf.runs.layout import (
     SUMMARY,
     TRAIN_LOG,
 )
-from torchrl_mbmf.runs.resume import resume_changes
+from torchrl_mbmf.runs.resume import describe_refused, flatten_settings, resume_changes
 
 __all__ = ["FinishedRunError", "RunFolderError", "RunFolderLock", "claim_run_folder"]
 
@@ -91,17 +91,6 @@ class FinishedRunError(RunFolderError):
     def __init__(self, message: str, summary: dict[str, Any]) -> None:
         super().__init__(message)
         self.summary = summary
-
-
-def _flatten(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in cfg.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, Mapping) and value:
-            flat.update(_flatten(value, prefix=f"{name}."))
-        else:
-            flat[name] = value
-    return flat
 
 
 @dataclass
@@ -297,15 +286,12 @@ def _check_same_config(path: Path, config: Mapping[str, Any]) -> None:
         raise RunFolderError(
             f"{str(path / CONFIG)!r} holds no config; pass restart=true to move it aside"
         )
-    refused, _ = resume_changes(_flatten(saved), _flatten(config))
+    refused, _ = resume_changes(flatten_settings(saved), flatten_settings(config))
     if refused:
-        lines = "\n".join(
-            f"  was written with {key}={old!r}, this run has {key}={new!r}"
-            for key, (old, new) in refused.items()
-        )
+        lines = describe_refused(refused)
         raise RunFolderError(
-            f"run_dir={str(path)!r} holds a run of another config:\n{lines}\npass "
-            "restart=true to move it aside and train afresh, or choose another run_dir"
+            f"run_dir={str(path)!r} holds a run of another config:\n{lines}\npass restart=true "
+            "to move it aside and train afresh, or choose another run_dir"
         )
 
 

@@ -59,6 +59,7 @@ __all__ = [
     "RunFolder",
     "git_commit",
     "machine_record",
+    "read_json",
     "write_run_record",
 ]
 
@@ -155,7 +156,7 @@ class RunFolder:
     def read_machine(self) -> dict[str, Any]:
         """``machine.json`` (empty if absent)."""
         path = self.file(MACHINE)
-        return _read_json(path) if path.exists() else {}
+        return read_json(path) if path.exists() else {}
 
     def write_summary(self, summary: Mapping[str, Any]) -> None:
         """Writes ``summary.json`` (the run finished)."""
@@ -164,12 +165,12 @@ class RunFolder:
     def read_summary(self) -> dict[str, Any] | None:
         """``summary.json``, or ``None`` for a run that has not finished."""
         path = self.file(SUMMARY)
-        return _read_json(path) if path.exists() else None
+        return read_json(path) if path.exists() else None
 
     def read_resume_log(self) -> list[dict[str, Any]]:
         """``resume_log.json``'s entries (empty if the run never resumed)."""
         path = self.file(RESUME_LOG)
-        return _read_json(path, list) if path.exists() else []
+        return read_json(path, list) if path.exists() else []
 
     def scalar_file(self, name: str) -> Path:
         """The CSV file of a logged scalar such as ``"train/episode_return"``."""
@@ -217,14 +218,30 @@ def _scalar_row(row: list[str]) -> tuple[int, float] | None:
     return int(step), value
 
 
-def _read_json(path: Path, kind: type = dict) -> Any:
-    """A run folder's JSON file; a ``ValueError`` names it when it is damaged."""
+def read_json(path: Path, kind: type = dict) -> Any:
+    """A JSON file of a run or analysis folder; a ``ValueError`` names it when it is damaged.
+
+    Args:
+        path: the file.
+        kind: the type its top level must have. Defaults to ``dict``.
+
+    Examples:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     (Path(d) / "a.json").write_text("[1]")
+        ...     try:
+        ...         read_json(Path(d) / "a.json")
+        ...     except ValueError as err:
+        ...         print(str(err).split(": ")[-1])
+        3
+        holds a list, expected dict
+    """
     try:
         found = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ValueError(f"{str(path)!r} is not valid JSON ({err})") from err
     if not isinstance(found, kind):
-        raise ValueError(f"{str(path)!r} holds a {type(found).__name__}, expected {kind.__name__}")
+        raise ValueError(f"{str(path)!r}: holds a {type(found).__name__}, expected {kind.__name__}")
     return found
 
 

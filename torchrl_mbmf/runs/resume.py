@@ -21,7 +21,9 @@ __all__ = [
     "DEFAULT_TARGETS",
     "IMPLIED_DEFAULTS",
     "RESUME_SAFE_SETTINGS",
+    "describe_refused",
     "fingerprint",
+    "flatten_settings",
     "resume_changes",
 ]
 
@@ -98,6 +100,46 @@ def resume_changes(
 
 #: Settings added after runs were written, with the value a config without them means.
 IMPLIED_DEFAULTS: dict[str, Any] = {"restart": False}
+
+
+def flatten_settings(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Flattens nested settings into ``{"a.b.c": value}``; lists and empty mappings are leaves.
+
+    Args:
+        cfg: nested plain mappings (a resolved config).
+        prefix: prepended to every key. Defaults to ``""``.
+
+    Examples:
+        >>> from torchrl_mbmf.runs.resume import flatten_settings
+        >>> flatten_settings({"ppo": {"lr": 3e-4, "hidden_sizes": [64, 64]}, "kw": {}})
+        {'ppo.lr': 0.0003, 'ppo.hidden_sizes': [64, 64], 'kw': {}}
+    """
+    flat: dict[str, Any] = {}
+    for key, value in cfg.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping) and value:
+            flat.update(flatten_settings(value, prefix=f"{name}."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def describe_refused(refused: Mapping[str, tuple[Any, Any]]) -> str:
+    """One line per refused change: ``was written with key=old, this run has key=new``.
+
+    Args:
+        refused: ``{key: (saved value, new value)}`` (the first result of
+            :func:`resume_changes`).
+
+    Examples:
+        >>> from torchrl_mbmf.runs.resume import describe_refused
+        >>> print(describe_refused({"seed": (0, 1)}))
+          was written with seed=0, this run has seed=1
+    """
+    return "\n".join(
+        f"  was written with {key}={old!r}, this run has {key}={new!r}"
+        for key, (old, new) in refused.items()
+    )
 
 
 def _implied(key: str, missing: str) -> Any:

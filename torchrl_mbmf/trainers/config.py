@@ -20,7 +20,12 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from torchrl_mbmf.checks import ConfigError, Setting
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
 from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
-from torchrl_mbmf.runs.resume import DEFAULT_TARGETS, RESUME_SAFE_SETTINGS, resume_changes
+from torchrl_mbmf.runs.resume import (
+    DEFAULT_TARGETS,
+    RESUME_SAFE_SETTINGS,
+    flatten_settings,
+    resume_changes,
+)
 from torchrl_mbmf.trainers.components import group_keys, group_target
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 
@@ -120,14 +125,7 @@ def flatten_config(cfg: Any, prefix: str = "") -> dict[str, Any]:
     """
     if isinstance(cfg, DictConfig):
         cfg = _resolved(cfg)
-    flat: dict[str, Any] = {}
-    for key, value in cfg.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, Mapping) and value:
-            flat.update(flatten_config(value, prefix=f"{name}."))
-        else:
-            flat[name] = value
-    return flat
+    return flatten_settings(cfg, prefix)
 
 
 def train_setting_keys(cfg: Any) -> dict[str, bool]:
