@@ -31,6 +31,18 @@ def _compose(*overrides: str):
     ("overrides", "message"),
     [
         (["ppo.gamma=5"], "ppo.gamma must be a number in (0, 1], got 5"),
+        (
+            ["method=sac", "sac.batch_size=512", "sac.replay_size=300"],
+            "sac.batch_size=512 is larger than sac.replay_size=300",
+        ),
+        (
+            ["method=sac", "sac.replay_size=500"],
+            "sac.replay_size=500 is smaller than sac.frames_per_batch=1000",
+        ),
+        (
+            ["method=sac", "total_steps=5000"],
+            "sac.init_random_frames=5000 leaves no steps of total_steps=5000",
+        ),
         (["method=sac", "sac.gamma=0"], "sac.gamma must be a number in (0, 1], got 0"),
         (["eval_episodes=-1"], "eval_episodes must be an integer >= 0, got -1"),
         (["method=sac", "sac.utd_ratio=-1"], "sac.utd_ratio must be a number > 0, got -1"),

@@ -273,6 +273,29 @@ def _check_budgets(cfg: Any, method: str) -> None:
             f"world_model.random_steps={random_steps} leaves no steps "
             f"of total_steps={total} for training"
         )
+    if algo == "sac":
+        _check_sac_sizes(cfg["sac"], frames, total)
+
+
+def _check_sac_sizes(sac: Any, frames: int | None, total: int) -> None:
+    """SAC's replay, batch and warm-up sizes against each other and the budget."""
+    replay, batch = _count(sac["replay_size"]), _count(sac["batch_size"])
+    if replay and batch and batch > replay:
+        raise ConfigError(
+            f"sac.batch_size={batch} is larger than sac.replay_size={replay}: no batch can be "
+            "sampled without repeats"
+        )
+    if replay and frames and replay < frames:
+        raise ConfigError(
+            f"sac.replay_size={replay} is smaller than sac.frames_per_batch={frames}: a "
+            "collected batch would overwrite itself"
+        )
+    warmup = sac.get("init_random_frames")
+    if isinstance(warmup, int) and not isinstance(warmup, bool) and warmup >= total:
+        raise ConfigError(
+            f"sac.init_random_frames={warmup} leaves no steps of total_steps={total} for SAC "
+            "updates (the run would end without one)"
+        )
 
 
 def _check_planner_variants(cfg: Any, method: str) -> None:
