@@ -100,3 +100,13 @@ def test_run_folder_names_damaged_files_and_skips_garbage_rows(tmp_path, caplog)
         steps, values = run.read_scalar("train/episode_return")
     assert steps.tolist() == [100, 500] and values.tolist() == [1.5, 2.5]
     assert "left out 4 row(s)" in caplog.text and "[2, 3, 4, 5]" in caplog.text
+
+
+def test_a_kill_during_the_export_leaves_only_run_files(tmp_path):
+    """The staging files of an interrupted export are a run's own: a rerun may resume."""
+    from torchrl_mbmf.runs.claim import claim_run_folder
+
+    save_policy(torch.nn.Linear(3, 2), tmp_path, step=1)
+    (tmp_path / f"{POLICY}.tmp").write_bytes(b"partial")
+    (tmp_path / f"{POLICY_RECORD}.tmp").write_text("{")
+    claim_run_folder(tmp_path, {"seed": 0}).release()

@@ -67,7 +67,8 @@ RUN_ENTRIES = frozenset(
         LOGS,
         CHECKPOINTS,
         FITS,
-        f"{POLICY}.tmp",
+        f"{POLICY}.tmp",  # the exports' staging files, left by a kill during a save
+        f"{POLICY_RECORD}.tmp",
     }
 )
 #: Entries a run folder may hold that are not the run's: Hydra's job log and config copy, the
