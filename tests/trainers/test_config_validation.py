@@ -31,6 +31,9 @@ def _compose(*overrides: str):
     ("overrides", "message"),
     [
         (["ppo.gamma=5"], "ppo.gamma must be a number in (0, 1], got 5"),
+        (["env.id=Nonexistent-v0"], "env.id='Nonexistent-v0' is not a registered Gymnasium id"),
+        (["env.id=Hoper-v5"], "close ids: ['Hopper-v5'"),
+        (["env.device=banana"], "env.device='banana' is not a torch device"),
         (
             ["method=sac", "sac.batch_size=512", "sac.replay_size=300"],
             "sac.batch_size=512 is larger than sac.replay_size=300",

@@ -240,9 +240,32 @@ def validate_train_config(cfg: Any) -> None:
         resolve_device(cfg.get("device", "cpu"))
     except DeviceError as err:
         raise ConfigError(str(err)) from err
+    _check_env(cfg["env"])
     _check_budgets(cfg, method)
     _check_planner_variants(cfg, method)
     _check_world_model_variants(cfg, method)
+
+
+def _check_env(env: Any) -> None:
+    """``env.id`` is a registered Gymnasium id and ``env.device`` a torch device."""
+    import gymnasium as gym
+    import torch
+
+    env_id = env["id"]
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(str(env_id), list(gym.registry), n=3, cutoff=0.6)
+        hint = f"; close ids: {close}" if close else ""
+        raise ConfigError(
+            f"env.id={env_id!r} is not a registered Gymnasium id{hint}; the tasks with configs: "
+            "env=half_cheetah|hopper|walker2d|ant|inverted_pendulum|pendulum"
+        )
+    try:
+        torch.device(env["device"])
+    except (RuntimeError, TypeError) as err:
+        raise ConfigError(
+            f"env.device={env['device']!r} is not a torch device (the real envs run on the "
+            "CPU: use cpu)"
+        ) from err
 
 
 def _check_budgets(cfg: Any, method: str) -> None:
