@@ -147,12 +147,7 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         self.max_log_var = float(max_log_var)
         n_in, n_out = state_dim + action_dim, state_dim + 1
         self.net = _build_network(n_in, n_out, self.hidden_sizes, activation, k, probabilistic)
-        for name, dim in (("state", state_dim), ("action", action_dim), ("delta", state_dim)):
-            self.register_buffer(f"{name}_loc", torch.zeros(dim))
-            self.register_buffer(f"{name}_scale", torch.ones(dim))
-        self.register_buffer("reward_loc", torch.zeros(1))
-        self.register_buffer("reward_scale", torch.ones(1))
-        self.register_buffer("normalizer_fitted", torch.zeros((), dtype=torch.bool))
+        self._register_scaling_buffers()
 
     @property
     def action_bounds(self) -> tuple[float, float] | None:
