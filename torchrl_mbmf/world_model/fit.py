@@ -38,6 +38,7 @@ from torchrl_mbmf.world_model.fit_history import (
     check_early_stopping,
     dynamics_optimizer,
 )
+from torchrl_mbmf.world_model.fused_step import FusedMSEGradient
 
 __all__ = [
     "EarlyStopping",
@@ -84,6 +85,9 @@ class _OneStep:
             self.history.num_val_windows = self.rollout.num_val
             self.windows = seeded_generator(None if seed is None else seed + _WINDOW_SEED_OFFSET)
         split.tensors = None
+        # The one-step loss of a plain ReLU network runs as hand-written forward and backward
+        # passes into reused buffers (bit for bit autograd's values and gradients).
+        self.fused = None if self.rollout is not None else FusedMSEGradient.for_net(model.net)
         # Each epoch gathers the training split once, in the epoch's shuffled order, into
         # these buffers; its minibatches are then contiguous slices holding exactly the rows
         # that ``train_x[order[i : i + batch_size]]`` would gather.
@@ -121,6 +125,16 @@ class _OneStep:
         total = torch.zeros((), device=split.device)
         if rollout is not None:
             rollout.start_epoch(self.windows)
+        if self.fused is not None:
+            optimizer.zero_grad(set_to_none=True)  # what the step leaves unwritten stays None
+            for i in range(0, n_train, batch_size):
+                batch_x, batch_y = (
+                    self.epoch_x[i : i + batch_size],
+                    self.epoch_y[i : i + batch_size],
+                )
+                total += self.fused.loss_and_grad(batch_x, batch_y) * batch_x.shape[0]
+                optimizer.step()
+            return float(total) / n_train
         for i in range(0, n_train, batch_size):
             batch_x, batch_y = self.epoch_x[i : i + batch_size], self.epoch_y[i : i + batch_size]
             size = batch_x.shape[0]
