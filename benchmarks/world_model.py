@@ -6,15 +6,19 @@ python benchmarks/world_model.py --data ... --sizes 100000 200000 400000 --warm-
 
 Fit throughput ("fit" rows, ``results/world_model_fit.json``): seconds per epoch and
 samples/s of the thesis fit (24 -> 500 -> 500 -> 19, Adam lr 1e-4, batch 512) at each size,
-measured in one process on one thread, alternating A B C A B C, in CPU seconds of the
-process (``time.process_time``: on a shared, overloaded machine the wall time mostly
-measures the waits for a core; both are written): ``before`` is the fit loop as
-it was before the speed work (a per-minibatch index gather, the stock ``net(x)``, the stock
-Adam; kept below as :func:`reference_fit`), ``after`` is :func:`fit_dynamics` (bit-identical
-to ``before``, checked here), ``after + fused Adam`` is :func:`fit_dynamics` with
-``dynamics_optimizer(fused_adam=True)`` (opt-in: float rounding differs). Each timed fit runs
+measured in one process, alternating the variants, in CPU seconds of the process
+(``time.process_time``: on a shared, overloaded machine the wall time mostly measures the
+waits for a core; both are written). The variants: ``before`` is the fit loop as it was
+before the speed work (a per-minibatch index gather, the stock ``net(x)``, the stock Adam;
+kept below as :func:`reference_fit`); ``autograd step`` is :func:`fit_dynamics` with its
+minibatch loss through autograd (the loop before ``FusedMSEGradient``); ``fused step`` is
+:func:`fit_dynamics` as it stands (bit-identical to both, checked here); ``+ fused Adam`` adds
+``dynamics_optimizer(fused_adam=True)`` (opt-in: float rounding differs); ``2 threads`` is
+the fused step with ``torch.set_num_threads(2)`` (compare its wall time, on an idle machine
+only). The step rows time one minibatch step of each, and ``matmuls only``: the step's eight
+matrix products alone, the floor of any loop that keeps them. Each timed fit runs
 ``--epochs`` full epochs without early stopping; its time includes the fit's setup (split,
-scaler, scaling), amortised over those epochs.
+scaler, scaling) and the held-out evaluations, amortised over those epochs.
 
 Warm refits (``--warm-refits``): the PPO-MPC run's schedule in miniature: a first fit on the
 first ``--initial`` transitions (the random-policy data), then a refit at each size that
@@ -32,6 +36,7 @@ standard deviation: real-looking transitions, but not new experience.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import statistics
 import sys
@@ -46,12 +51,14 @@ from tensordict import TensorDict, TensorDictBase
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import matmul_peak_gflops, print_table, time_call, write
 
+import torchrl_mbmf.world_model.fit as fit_module
 from torchrl_mbmf.data import TransitionDataset, collect_random_transitions
 from torchrl_mbmf.envs import LearnedDynamicsEnv, make_half_cheetah_env
 from torchrl_mbmf.modules import DeltaDynamicsModel
 from torchrl_mbmf.objectives import DynamicsLoss
 from torchrl_mbmf.world_model import fit_dynamics
 from torchrl_mbmf.world_model.fit import dynamics_optimizer
+from torchrl_mbmf.world_model.fused_step import FusedMSEGradient
 
 NOTE = (
     "2 shared vCPUs with other jobs running at the same time (load average far above 2): "
@@ -98,6 +105,24 @@ def grow(data: TensorDict, size: int, seed: int = 0) -> TensorDict:
         parts.append(extra)
         have += data.shape[0]
     return torch.cat(parts)[:size]
+
+
+class _NoFusedStep:
+    """Stands in for ``FusedMSEGradient`` in :func:`autograd_step`: no network is fused."""
+
+    @staticmethod
+    def for_net(net: torch.nn.Module) -> None:
+        return None
+
+
+@contextlib.contextmanager
+def autograd_step():
+    """:func:`fit_dynamics` with its minibatch loss through autograd (before the fused step)."""
+    fit_module.FusedMSEGradient = _NoFusedStep
+    try:
+        yield
+    finally:
+        fit_module.FusedMSEGradient = FusedMSEGradient
 
 
 def reference_fit(
@@ -155,6 +180,22 @@ def reference_fit(
     return losses
 
 
+STEP_VARIANTS = ("before", "autograd step", "fused step", "fused step + fused Adam", "matmuls only")
+FIT_VARIANTS = ("before", "autograd step", "fused step", "fused step + fused Adam", "2 threads")
+
+
+def matmuls(x: torch.Tensor, weights: list[torch.Tensor]) -> None:
+    """The eight matrix products of one step of the 3-layer network (forward and backward)."""
+    w1, b1, w2, b2, w3, b3 = weights
+    h1 = torch.addmm(b1, x, w1.t())
+    h2 = torch.addmm(b2, h1, w2.t())
+    out = torch.addmm(b3, h2, w3.t())
+    g2 = out.mm(w3)
+    torch.mm(out.t(), h2)
+    torch.mm(g2.t(), h1)
+    torch.mm(g2.mm(w2).t(), x)
+
+
 def step_rows(data: TensorDict, rounds: int, block: int) -> list[dict]:
     """One minibatch step (batch 512) of each fit loop, alternated in blocks of ``block`` steps.
 
@@ -173,16 +214,33 @@ def step_rows(data: TensorDict, rounds: int, block: int) -> list[dict]:
     order = torch.randperm(x.shape[0])[:n]
     xs, ys = x[order], y[order]
     steps = {}
-    for what in ("before", "after", "after + fused Adam"):
+    for what in STEP_VARIANTS:
         model = copy.deepcopy(base)
         loss_module = DynamicsLoss(model)
         optimizer = dynamics_optimizer(model, fused_adam=what.endswith("fused Adam"))
+        fused = FusedMSEGradient.for_net(model.net)
+        weights = [p.detach() for p in model.net.parameters()]
 
-        def step(i, what=what, model=model, loss_module=loss_module, optimizer=optimizer):
+        def step(
+            i,
+            what=what,
+            model=model,
+            loss_module=loss_module,
+            optimizer=optimizer,
+            fused=fused,
+            weights=weights,
+        ):
             j = (i * 512) % n
             if what == "before":
                 idx = order[j : j + 512]
                 loss = F.mse_loss(model.net(x[idx]), y[idx])
+            elif what.startswith("fused"):
+                fused.loss_and_grad(xs[j : j + 512], ys[j : j + 512])
+                optimizer.step()
+                return
+            elif what == "matmuls only":
+                matmuls(xs[j : j + 512], weights)
+                return
             else:
                 loss = loss_module.scaled_loss(xs[j : j + 512], ys[j : j + 512])
             optimizer.zero_grad(set_to_none=True)
@@ -210,7 +268,7 @@ def step_rows(data: TensorDict, rounds: int, block: int) -> list[dict]:
                 "batch": 512,
                 "cpu_ms": sec * 1e3,
                 "wall_ms": statistics.median(walls[what]) * 1e3,
-                "samples_per_cpu_s": 512 / sec,
+                "cpu_us_per_sample": sec / 512 * 1e6,
                 "speedup": ratio,
                 "GFLOP_per_cpu_s": 512 * FLOP_PER_SAMPLE / sec / 1e9,
                 "runs": len(values),
@@ -221,40 +279,40 @@ def step_rows(data: TensorDict, rounds: int, block: int) -> list[dict]:
 
 
 def fit_rows(data: TensorDict, sizes: list[int], epochs: int, repeats: int) -> list[dict]:
-    """Seconds per epoch of before / after / after + fused Adam, alternated, at each size."""
+    """Seconds per epoch of each of :data:`FIT_VARIANTS`, alternated, at each size."""
     rows = []
     torch.manual_seed(0)
     base = DeltaDynamicsModel(18, 6)
+    threads = torch.get_num_threads()
     for size in sizes:
         subset = grow(data, size)
         n_train = size - max(1, round(size * 0.1))
-        times: dict[str, list[float]] = {"before": [], "after": [], "after + fused Adam": []}
+        times: dict[str, list[float]] = {k: [] for k in FIT_VARIANTS}
         walls: dict[str, list[float]] = {k: [] for k in times}
-        identical = True
+        identical = dict.fromkeys(times, True)
         for rep in range(repeats):
             weights = {}
             for what in times:
                 model = copy.deepcopy(base)
                 optimizer = dynamics_optimizer(model, fused_adam=what.endswith("fused Adam"))
+                torch.set_num_threads(2 if what == "2 threads" else threads)
                 start, wall = time.process_time(), time.perf_counter()
                 if what == "before":
                     reference_fit(model, subset, optimizer, max_epochs=epochs, seed=rep)
                 else:
-                    fit_dynamics(
-                        model,
-                        subset,
-                        optimizer=optimizer,
-                        max_epochs=epochs,
-                        patience=epochs,
-                        seed=rep,
-                    )
+                    kwargs = {"optimizer": optimizer, "max_epochs": epochs, "patience": epochs}
+                    with autograd_step() if what == "autograd step" else contextlib.nullcontext():
+                        fit_dynamics(model, subset, seed=rep, **kwargs)
                 times[what].append((time.process_time() - start) / epochs)
                 walls[what].append((time.perf_counter() - wall) / epochs)
+                torch.set_num_threads(threads)
                 weights[what] = model.state_dict()
-            identical &= all(
-                torch.equal(weights["before"][k], v) for k, v in weights["after"].items()
-            )
+            for what, state in weights.items():
+                identical[what] &= all(
+                    torch.equal(weights["before"][k], v) for k, v in state.items()
+                )
         before = statistics.median(times["before"])
+        before_wall = statistics.median(walls["before"])
         for what, values in times.items():
             sec = statistics.median(values)
             rows.append(
@@ -263,14 +321,16 @@ def fit_rows(data: TensorDict, sizes: list[int], epochs: int, repeats: int) -> l
                     "transitions": size,
                     "cpu_s_per_epoch": sec,
                     "wall_s_per_epoch": statistics.median(walls[what]),
-                    "samples_per_cpu_s": n_train / sec,
+                    "cpu_us_per_transition": sec / n_train * 1e6,
+                    "wall_us_per_transition": statistics.median(walls[what]) / n_train * 1e6,
                     "speedup": before / sec,
+                    "wall_speedup": before_wall / statistics.median(walls[what]),
                     "GFLOP_per_cpu_s": n_train * FLOP_PER_SAMPLE / sec / 1e9,
-                    "bit_identical_to_before": identical if what == "after" else None,
+                    "bit_identical_to_before": identical[what],
                     "runs": len(values),
                 }
             )
-        print_table(rows[-3:])
+        print_table(rows[-len(times) :])
     return rows
 
 
