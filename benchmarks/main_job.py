@@ -33,6 +33,7 @@ import csv
 import itertools
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -170,7 +171,7 @@ def committed_rows(run: dict[str, object]) -> dict[str, float]:
 
 
 def _short_run(variant: str, args: argparse.Namespace, tmp: Path, index: int) -> Path:
-    run_dir = tmp / f"{variant.replace(' ', '_').replace('=', '')}_{index}"
+    run_dir = tmp / f"{re.sub('[^a-z0-9]+', '_', variant)}_{index}"
     total = args.random_steps + (args.planning_updates + args.ppo_updates) * FRAMES
     threads = 2 if variant.endswith("threads=2") else 1
     overrides = [
