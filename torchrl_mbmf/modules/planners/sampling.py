@@ -14,7 +14,8 @@ from torch import nn
 from torchrl.modules import MLP, IndependentNormal, TanhNormal
 
 from torchrl_mbmf.modules.actors import TanhLoc
-from torchrl_mbmf.modules.planners.fast_model import addmm_relu, slot_versions, tensor_slots
+from torchrl_mbmf.modules.mlp import plain_layers, run_plain
+from torchrl_mbmf.modules.planners.fast_model import slot_versions, tensor_slots
 
 ParamsFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
@@ -35,36 +36,18 @@ def _flat_layers(net: nn.Module) -> list[nn.Module]:
 
 
 def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
-    """``layers`` run in turn, with each ``Linear`` as one ``addmm`` on live weights.
+    """``layers`` run in turn as plain ops on the live weights (:func:`run_plain`).
 
     Values equal the modules' own: ``nn.Linear`` on a 2-d input is ``addmm(b, x, W.t())``, a
-    ReLU right after it runs in place on that fresh output and a ``Tanh`` is ``torch.tanh``.
-    Other modules are called as is.
+    ReLU or Tanh right after it runs in place on that fresh output; other modules are called
+    as they are.
     """
-    ops: list[tuple[str, object, object]] = []
-    for m in layers:
-        if type(m) is nn.Linear and m.bias is not None:
-            ops.append(("linear", m.weight.detach().t(), m.bias.detach()))
-        elif type(m) is nn.ReLU and ops and ops[-1][0] == "linear":
-            ops[-1] = ("linear_relu", *ops[-1][1:])
-        elif type(m) is nn.Tanh:
-            ops.append(("tanh", None, None))
-        else:
-            ops.append(("call", m, None))
+    steps = plain_layers(layers)
 
     def run(x: torch.Tensor) -> torch.Tensor:
         if x.dim() != 2:
             x = x.reshape(-1, x.shape[-1])
-        for kind, a, b in ops:
-            if kind == "call":
-                x = a(x)
-            elif kind == "tanh":
-                x = torch.tanh(x)
-            elif kind == "linear_relu":
-                x = addmm_relu(b, x, a)
-            else:
-                x = torch.addmm(b, x, a)
-        return x
+        return run_plain(steps, x)
 
     return run
 
