@@ -205,7 +205,11 @@ class ActorSampler:
         return params, None
 
     def sample_params(
-        self, loc: torch.Tensor, scale: torch.Tensor, out: torch.Tensor | None = None
+        self,
+        loc: torch.Tensor,
+        scale: torch.Tensor,
+        out: torch.Tensor | None = None,
+        noise: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """One action per row of ``loc``, drawn as :meth:`sample` draws it (same numbers).
 
@@ -213,11 +217,19 @@ class ActorSampler:
             loc: the distribution's location ``[..., action_dim]`` (not modified).
             scale: its scale, any tensor broadcastable to ``loc``.
             out: where to write the actions (any strides). Defaults to a new tensor.
+            noise: a contiguous buffer shaped like ``loc`` for the standard normal draw
+                (overwritten; the same numbers as a fresh one), used when ``loc`` is
+                contiguous. Defaults to a new tensor.
         """
-        x = torch.randn_like(loc)  # (``torch.normal`` is the same draw but slower: it checks std)
-        x.mul_(scale).add_(loc)
+        if noise is not None and loc.is_contiguous() and noise.shape == loc.shape:
+            x = noise.normal_()  # what ``randn_like`` runs on its fresh tensor
+        else:
+            x = torch.randn_like(loc)  # (``torch.normal``: the same draw, slower: checks std)
         if self.distribution_class is not TanhNormal:
-            return x if out is None else out.copy_(x)
+            if out is None:
+                return x.mul_(scale).add_(loc)
+            return torch.mul(x, scale, out=out).add_(loc)  # elementwise: the same values
+        x.mul_(scale).add_(loc)
         x = x.tanh_() if out is None else torch.tanh(x, out=out)
         eps = torch.finfo(x.dtype).resolution
         x.clamp_(-1 + eps, 1 - eps)
