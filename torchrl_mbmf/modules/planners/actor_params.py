@@ -35,15 +35,13 @@ def _flat_layers(net: nn.Module) -> list[nn.Module]:
 def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
     """``layers`` run in turn as plain ops on the live weights (:func:`run_plain`).
 
-    Values equal the modules' own: ``nn.Linear`` on a 2-d input is ``addmm(b, x, W.t())``, a
-    ReLU or Tanh right after it runs in place on that fresh output; other modules are called
-    as they are.
+    The modules' own ops on any input shape: ``nn.Linear`` on a 2-d input is
+    ``addmm(b, x, W.t())`` (else ``linear``), a ReLU or Tanh right after it runs in place on
+    that fresh output; other modules are called as they are.
     """
     steps = plain_layers(layers)
 
     def run(x: torch.Tensor) -> torch.Tensor:
-        if x.dim() != 2:
-            x = x.reshape(-1, x.shape[-1])
         return run_plain(steps, x)
 
     return run
