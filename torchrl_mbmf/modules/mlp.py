@@ -234,12 +234,25 @@ def run_plain(
         True
     """
     fresh = False
+    inplace = record is None
     for layer in layers:
-        if isinstance(layer, tuple):
-            x, fresh = affine(x, layer[0], layer[1]), True
+        if type(layer) is tuple:
+            weight_t, bias = layer
+            if x.dim() == 2 and weight_t.dim() == 2 and bias is not None:
+                x = torch.addmm(bias, x, weight_t)  # affine's 2-d case, inlined (hot loops)
+            else:
+                x = affine(x, weight_t, bias)
+            fresh = True
+            if record is not None:
+                record.append(x)
+            continue
+        if layer == "relu":
+            x = x.relu_() if fresh and inplace else torch.relu(x)
+        elif layer == "tanh":
+            x = x.tanh_() if fresh and inplace else torch.tanh(x)
         else:
-            x = activate(x, layer, inplace=fresh and record is None)
-            fresh = False
+            x = layer(x)
+        fresh = False
         if record is not None:
             record.append(x)
     return x

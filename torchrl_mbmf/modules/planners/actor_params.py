@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -39,12 +40,7 @@ def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
     ``addmm(b, x, W.t())`` (else ``linear``), a ReLU or Tanh right after it runs in place on
     that fresh output; other modules are called as they are.
     """
-    steps = plain_layers(layers)
-
-    def run(x: torch.Tensor) -> torch.Tensor:
-        return run_plain(steps, x)
-
-    return run
+    return functools.partial(run_plain, plain_layers(layers))
 
 
 class TightParams:
