@@ -196,7 +196,7 @@ def test_interrupted_save_leaves_nothing(tmp_path, monkeypatch):
     def crash(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr("torchrl_mbmf.data.transitions.os.replace", crash)
+    monkeypatch.setattr("torchrl_mbmf.data.dataset_files.os.replace", crash)
     with pytest.raises(OSError, match="disk full"):
         data.save(tmp_path / "ds")
     assert list(tmp_path.iterdir()) == []
