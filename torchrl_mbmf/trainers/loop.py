@@ -299,7 +299,7 @@ class Trainer:
 
     def parameters_digest(self) -> str:
         """SHA-256 of every trained tensor (policy, critics, world model): equal runs match."""
-        modules = [self.agent.loss] + ([self.world.model] if self.world is not None else [])
+        modules = [self.agent.loss] + ([] if self.world is None else self.world.trained_modules())
         return parameters_digest(modules)
 
 
