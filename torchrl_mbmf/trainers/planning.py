@@ -43,6 +43,7 @@ from torchrl_mbmf.trainers.schedule import Progress
 from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.world_model.snapshots import heldout_open_loop_errors, save_fit_snapshot
+from torchrl_mbmf.world_model.termination_fit import fit_termination
 
 __all__ = ["WorldModelPart", "make_planner", "make_termination_head", "make_world_model"]
 
@@ -186,10 +187,6 @@ def make_planner(
         # threshold is calibrated at every refit (None until the first one).
         return EnsemblePolicyGuidedPlanner(model_env, actor, **kwargs)
     return PolicyGuidedMPCPlanner(model_env, actor, **kwargs)
-
-
-#: Epochs of each refit of the learned termination head (warm-started from the last fit).
-TERMINATION_EPOCHS = 20
 
 
 def make_termination_head(env: EnvBase, state_dim: int, device: torch.device) -> LearnedTermination:
@@ -451,14 +448,7 @@ class WorldModelPart:
 
     def _fit_termination(self, seed: int) -> dict[str, float]:
         """Refits the termination head on every real next state and its ``terminated`` flag."""
-        data = self.dataset
-        terminated = data.terminated()  # refuses a dataset without the flags
-        fit = self.termination.fit(
-            data.tensors().get(("next", data.state_key)),
-            terminated,
-            epochs=TERMINATION_EPOCHS,
-            seed=seed,
-        )
+        fit = fit_termination(self.termination, self.dataset, seed=seed)
         return {
             "model/termination_val_accuracy": fit.val_accuracy,
             "model/termination_val_balanced_accuracy": fit.val_balanced_accuracy,
