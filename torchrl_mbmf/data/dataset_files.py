@@ -292,28 +292,7 @@ class DatasetFiles:
                 hold anything but the expected plain tensors, or fail the checksum (which
                 covers the metadata too).
         """
-        path = Path(path)
-        meta_file = path / _META_FILE
-        if not meta_file.exists():
-            raise FileNotFoundError(f"no dataset at {path} (missing {_META_FILE})")
-        try:
-            meta = json.loads(meta_file.read_text())
-        except json.JSONDecodeError as err:
-            raise CorruptDatasetError(f"{meta_file} is not valid JSON: {err}") from err
-        keys = check_record(meta, str(meta_file), str(path))
-        stored = None
-        if int(meta["num_transitions"]):
-            try:
-                # JSON and raw tensor files only: nothing stored is ever unpickled
-                stored = load_tensor_folder(path / _BUFFER_DIR, keys=keys)
-            except UnsafeFolderError as err:
-                raise CorruptDatasetError(f"cannot read the buffer of {path}: {err}") from err
-            absent = [k for k in keys if k not in stored.keys(True, True)]
-            if absent:
-                raise CorruptDatasetError(
-                    f"cannot read the buffer of {path}: "
-                    f"{path / _BUFFER_DIR / 'meta.json'} lacks the entries {absent}"
-                )
+        meta, stored = _read_folder(Path(path))
         return cls.from_record(
             meta,
             stored,
@@ -403,3 +382,29 @@ class DatasetFiles:
                 )
         data.episodes.load_state(meta["next_traj"], meta["open_traj"])
         return data
+
+
+def _read_folder(path: Path) -> tuple[dict[str, Any], TensorDictBase | None]:
+    """The record and stored tensors of a saved dataset (:meth:`DatasetFiles.load`'s reading)."""
+    meta_file = path / _META_FILE
+    if not meta_file.exists():
+        raise FileNotFoundError(f"no dataset at {path} (missing {_META_FILE})")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except json.JSONDecodeError as err:
+        raise CorruptDatasetError(f"{meta_file} is not valid JSON: {err}") from err
+    keys = check_record(meta, str(meta_file), str(path))
+    stored = None
+    if int(meta["num_transitions"]):
+        try:
+            # JSON and raw tensor files only: nothing stored is ever unpickled
+            stored = load_tensor_folder(path / _BUFFER_DIR, keys=keys)
+        except UnsafeFolderError as err:
+            raise CorruptDatasetError(f"cannot read the buffer of {path}: {err}") from err
+        absent = [k for k in keys if k not in stored.keys(True, True)]
+        if absent:
+            raise CorruptDatasetError(
+                f"cannot read the buffer of {path}: "
+                f"{path / _BUFFER_DIR / 'meta.json'} lacks the entries {absent}"
+            )
+    return meta, stored
