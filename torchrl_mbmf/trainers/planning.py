@@ -207,12 +207,12 @@ def make_termination_head(env: EnvBase, state_dim: int, device: torch.device) ->
         >>> make_termination_head(make_env("Hopper-v5"), 12, torch.device("cpu")).state_dim
         12
     """
-    found = gym_id_and_kwargs(env)
-    task, name = ("this task", "") if found is None else (found[0], found[0].split("/")[-1])
+    task, kwargs = gym_id_and_kwargs(env) or ("this task", {})
+    name = task.split("/")[-1]
     if name.split("-")[0] in NEVER_TERMINATING:
         what = "no terminal states by Gymnasium's rule (the head learns that from the data)"
     elif name.split("-")[0] in RULES and name.endswith("-v5"):
-        rule = termination_rule(task, **found[1])
+        rule = termination_rule(task, **kwargs)
         what = f"a known termination rule ({type(rule).__name__}), not used"
     else:
         what = "no known termination rule"
