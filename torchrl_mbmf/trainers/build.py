@@ -208,7 +208,8 @@ def make_hooks(cfg: DictConfig, model_based: bool) -> tuple[Hooks, dict[str, Hoo
         model_based: whether the run has a world model (data and refit hooks).
 
     Returns:
-        ``(hooks, named)`` with ``named`` holding ``bar``, ``timing`` and ``checkpoints``.
+        ``(hooks, named)`` with ``named`` holding ``bar``, ``timing``, ``checkpoints`` and
+        ``evaluation``.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -227,6 +228,7 @@ def make_hooks(cfg: DictConfig, model_based: bool) -> tuple[Hooks, dict[str, Hoo
         ),
         "timing": StepTiming(),
         "checkpoints": SaveCheckpoint(int(cfg.checkpoint.every_steps)),
+        "evaluation": Evaluation(int(cfg.eval_every), int(cfg.eval_episodes)),
     }
     hooks = Hooks()
     hooks.register("collected", named["bar"])
@@ -235,6 +237,6 @@ def make_hooks(cfg: DictConfig, model_based: bool) -> tuple[Hooks, dict[str, Hoo
         hooks.register("collected", ModelData())
         hooks.register("updated", ModelRefit())
     hooks.register("updated", named["timing"])
-    hooks.register("updated", Evaluation(int(cfg.eval_every), int(cfg.eval_episodes)))
+    hooks.register("updated", named["evaluation"])
     hooks.register("round_end", named["checkpoints"])
     return hooks, named

@@ -89,6 +89,11 @@ def group_keys(target: Callable[..., Any]) -> tuple[tuple[str, ...], tuple[str, 
     )
 
 
+def _other_groups(group: str) -> tuple[str, ...]:
+    """The key prefixes of the groups other than ``group`` (``"planner."``, ...)."""
+    return tuple(f"{g}." for g in DEFAULT_TARGETS if g != group)
+
+
 def _qualified(group: str, keys: Sequence[str], message: str) -> str:
     """``message`` with the group prefixed to the argument it starts with (else ``group: ``)."""
     if message.startswith(f"{group}."):
@@ -135,6 +140,8 @@ def instantiate_group(cfg: Any, group: str, **runtime: Any) -> Any:
         return instantiate(node, **runtime, _convert_="all")
     except InstantiationException as err:
         cause = err.__cause__
+        if isinstance(cause, ConfigError) and str(cause).startswith(_other_groups(group)):
+            raise cause from None  # a nested group's error names its own key (planner.horizon)
         if isinstance(cause, TypeError | ValueError):
             raise ConfigError(_qualified(group, keys, str(cause))) from cause
         raise

@@ -136,6 +136,12 @@ class Trainer:
         self.resumed = self.run_checkpoint.resume()
         if self.resumed and self.world is not None:
             self.world.restore(self.progress)
+        if "eval_every" in self.run_checkpoint.allowed_changes:
+            # a new evaluation schedule applies from the resume point on, as a fresh run's
+            progress = self.progress
+            progress.next_eval = named["evaluation"].next_eval_at(
+                progress.real_steps, progress.random_steps, self.frames_per_batch
+            )
         write_run_record(self.run_dir, cfg)
 
     def count(self, batch: TensorDictBase, random: bool = False) -> None:
