@@ -175,3 +175,18 @@ def test_resume_changes_split():
     assert {"total_steps", "threads", "eval_episodes", "experiment.name"} <= set(allowed)
     assert not set(refused) & set(allowed)
     assert resume_changes(saved, dict(saved)) == ({}, {})
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("planner.horizon=0", "planner.horizon must be an integer >= 1, got 0"),
+        ("planner.num_candidates=2.5", "planner.num_candidates must be an integer >= 1, got 2.5"),
+    ],
+)
+def test_planner_errors_name_the_planner_group(override, message, tmp_path):
+    # the planner is built inside the world-model part: its error names its own group only
+    cfg = _compose("method=ppo_mpc", "env=pendulum", override)
+    with pytest.raises(ConfigError) as err:
+        build_for_checks(cfg, tmp_path / "run")
+    assert str(err.value) == message
