@@ -67,6 +67,12 @@ def _compose(*overrides: str):
             "sac.hidden_sizes must be a list of integers >= 1, got 64",
         ),
         (["planner.horizon=2.5"], "planner.horizon must be an integer >= 1, got 2.5"),
+        # the refinement keys are checked without a refinement too (were accepted unused)
+        (["planner.temperature=nan"], "planner.temperature must be a finite number >= 0, got nan"),
+        (["planner.temperature=0"], "planner.temperature must be > 0, got 0"),
+        (["planner.min_std=-1"], "planner.min_std must be a finite number >= 0, got -1"),
+        (["planner.iterations=2.5"], "planner.iterations must be an integer >= 1, got 2.5"),
+        (["planner.policy_fraction=1"], "planner.policy_fraction must be in [0, 1.0), got 1"),
         (["ppo.epochs=true"], "ppo.epochs must be an integer >= 1, got True"),
         (["progress=yes"], "progress must be true or false, got 'yes'"),
         (["threads=0"], "threads must be null or an integer >= 1, got 0"),
@@ -190,3 +196,16 @@ def test_planner_errors_name_the_planner_group(override, message, tmp_path):
     with pytest.raises(ConfigError) as err:
         build_for_checks(cfg, tmp_path / "run")
     assert str(err.value) == message
+
+
+def test_a_run_dir_that_is_a_file_is_refused_naming_it(tmp_path):
+    from torchrl_mbmf.runs.claim import RunFolderError
+
+    path = tmp_path / "notes.txt"
+    path.write_text("mine")
+    cfg = _compose("method=ppo", "env=pendulum")
+    with pytest.raises(
+        RunFolderError, match=r"run_dir='.*notes\.txt' is a file, expected a folder"
+    ):
+        build_for_checks(cfg, path)
+    assert path.read_text() == "mine"
