@@ -209,3 +209,16 @@ def test_a_run_dir_that_is_a_file_is_refused_naming_it(tmp_path):
     ):
         build_for_checks(cfg, path)
     assert path.read_text() == "mine"
+
+
+def test_a_run_dir_that_cannot_be_created_or_written_is_refused(tmp_path, monkeypatch):
+    import torchrl_mbmf.runs.claim as claim
+
+    (tmp_path / "file").write_text("")
+    cfg = _compose("method=ppo", "env=pendulum")
+    with pytest.raises(claim.RunFolderError, match=r"file/run' cannot be created"):
+        build_for_checks(cfg, tmp_path / "file" / "run")
+    # an unwritable folder (root writes anywhere: the permission check is what is tested)
+    monkeypatch.setattr(claim.os, "access", lambda path, mode: False)
+    with pytest.raises(claim.RunFolderError, match=r"run' is not writable"):
+        build_for_checks(cfg, tmp_path / "run")
