@@ -18,7 +18,7 @@ class StandardScaling:
     :meth:`fit_normalizer`. :meth:`fold_scaling` folds them into a chain of linear layers: the
     one fold every fast path (fused steps, cached planner steps, fused ensemble members) uses.
     A mixin: the model defines ``state_dim``, ``action_dim``, ``action_low``, ``action_high``
-    and registers the buffers.
+    and registers the buffers with ``_register_scaling_buffers``.
 
     Examples:
         >>> import torch
@@ -42,6 +42,17 @@ class StandardScaling:
     reward_loc: torch.Tensor
     reward_scale: torch.Tensor
     normalizer_fitted: torch.Tensor
+
+    def _register_scaling_buffers(self) -> None:
+        """Registers the statistics as buffers (identity scaling until fitted)."""
+        register = self.register_buffer  # type: ignore[attr-defined]  # an nn.Module's
+        dims = (("state", self.state_dim), ("action", self.action_dim), ("delta", self.state_dim))
+        for name, dim in dims:
+            register(f"{name}_loc", torch.zeros(dim))
+            register(f"{name}_scale", torch.ones(dim))
+        register("reward_loc", torch.zeros(1))
+        register("reward_scale", torch.ones(1))
+        register("normalizer_fitted", torch.zeros((), dtype=torch.bool))
 
     def _check(self, state: torch.Tensor, action: torch.Tensor) -> None:
         if state.shape[-1] != self.state_dim:
