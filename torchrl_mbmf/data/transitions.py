@@ -67,7 +67,8 @@ class TransitionDataset(DatasetFiles):
 
     Args:
         metadata: provenance, at least ``env_id`` and ``reward`` (see
-            :func:`~torchrl_mbmf.envs.env_metadata`).
+            :func:`~torchrl_mbmf.envs.env_metadata`); an optional ``state_shape`` (the
+            state's trailing shape) is checked by the first ``extend``.
 
     Keyword Args:
         capacity: maximal number of transitions. Defaults to ``2_000_000``.
@@ -216,6 +217,7 @@ class TransitionDataset(DatasetFiles):
                 k: (tuple(stored.get(k).shape[1:]), stored.get(k).dtype) for k in layout
             }
         if self._layout is None:
+            self._check_first_states(layout)
             self._layout = layout
             return
         for name, (shape, dtype) in layout.items():
@@ -226,6 +228,24 @@ class TransitionDataset(DatasetFiles):
                     f"but the dataset holds {list(want_shape)} and {want_dtype}; nothing was "
                     "stored (a dataset holds one env's transitions)"
                 )
+
+    def _check_first_states(
+        self, layout: dict[NestedKey, tuple[tuple[int, ...], torch.dtype]]
+    ) -> None:
+        """The first batch's state and next state agree, and match ``metadata["state_shape"]``."""
+        shape, next_shape = layout[self.state_key][0], layout[("next", self.state_key)][0]
+        want = self.metadata.get("state_shape")
+        if want is not None and list(shape) != list(want):
+            raise ValueError(
+                f"transitions' {self.state_key!r} has trailing shape {list(shape)}, but the "
+                f"dataset's metadata says state_shape={list(want)} (env_id="
+                f"{self.metadata['env_id']!r}); nothing was stored"
+            )
+        if next_shape != shape:
+            raise ValueError(
+                f"transitions' state has trailing shape {list(shape)} but their next state "
+                f"{list(next_shape)}; nothing was stored"
+            )
 
     def tensors(self) -> TensorDictBase:
         """All stored transitions as one ``[N]`` TensorDict (a view of the storage)."""

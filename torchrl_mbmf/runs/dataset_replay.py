@@ -1,13 +1,10 @@
 """A run's real-transition dataset kept as the actions that made it, rebuilt by replaying them.
 
-A planning-phase checkpoint holds every real transition so far (about 181 bytes each, tens of
-MB). The real env is deterministic given its seeds, so the transitions follow from far less:
-the actions (24 bytes a step for HalfCheetah), the rows where the env was seeded and reset, and
-the trajectory ids. :class:`DatasetReplay` is that record; :meth:`DatasetReplay.rebuild` steps
-the env through the actions again and accepts the result only if it matches the dataset's
-checksum bit for bit. :func:`compact_checkpoint` and :func:`expand_checkpoint` swap a
-checkpoint's dataset for its replay and back, so that a checkpoint small enough to commit can
-continue a run on another machine.
+:class:`DatasetReplay` records the actions, seeded resets and trajectory ids;
+:meth:`DatasetReplay.rebuild` replays them and accepts the result only if it matches the
+dataset's checksum bit for bit. :func:`compact_checkpoint` and :func:`expand_checkpoint` swap a
+checkpoint's dataset for its replay and back (a checkpoint small enough to commit). Why this
+works: ``docs/design/run_folder.md``.
 """
 
 from __future__ import annotations
@@ -132,15 +129,9 @@ def _sha256(array: np.ndarray) -> str:
 class DatasetReplay:
     """The record that rebuilds a run's :class:`~torchrl_mbmf.data.TransitionDataset` in its env.
 
-    The :class:`~torchrl_mbmf.trainers.Trainer` collects with one real env that it seeds
-    with ``seed + real steps`` at every collector start (after the random data, after each
-    checkpoint); within a collector the env resets itself after every episode end, from its
-    own random stream. So the transitions follow from the actions taken, the rows where the
-    env was seeded (and with which seed), and the dataset's record (provenance, trajectory
-    ids, checksum). :meth:`from_dataset` finds the seeded rows by replaying the actions and
-    checks every stored value of every transition on the way; :meth:`rebuild` replays them
-    again (on this or another machine) and returns the dataset only if it matches the
-    record's checksum bit for bit.
+    :meth:`from_dataset` finds the seeded rows by replaying the actions (checking every stored
+    value on the way); :meth:`rebuild` replays them again, on this or another machine, and
+    returns the dataset only if it matches the record's checksum bit for bit.
 
     Args:
         actions: the ``[N, *action_shape]`` float32 actions, row by row.
