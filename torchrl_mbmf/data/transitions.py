@@ -114,7 +114,7 @@ class TransitionDataset(DatasetFiles):
         # Whether ``terminated`` is stored: ``None`` until the first extend decides it.
         self._terminated: bool | None = None
         # Trailing shape and dtype of each stored field, fixed by the first ``extend``.
-        self._layout: dict[NestedKey, tuple[tuple[int, ...], torch.dtype]] | None = None
+        self._layout: Layout | None = None
 
     def __len__(self) -> int:
         return len(self.buffer)
@@ -202,22 +202,14 @@ class TransitionDataset(DatasetFiles):
 
     def _check_layout(self, batch: TensorDictBase) -> None:
         """Refuses fields whose size or dtype differ from the stored ones (or are not float32)."""
-        layout = {}
-        for name in self.keys[:4]:
-            value = batch.get(name)
-            layout[name] = (tuple(value.shape[2:]), value.dtype)
-            if value.dtype.is_floating_point and value.dtype != torch.float32:
-                raise ValueError(
-                    f"transitions' {name!r} is {value.dtype}, expected torch.float32 (the world "
-                    "model's dtype): wrap a float64 env in torchrl's DoubleToFloat transform"
-                )
+        layout = _batch_layout(batch, self.keys[:4])
         if self._layout is None and len(self) > 0:
             stored = self.tensors()
             self._layout = {
                 k: (tuple(stored.get(k).shape[1:]), stored.get(k).dtype) for k in layout
             }
         if self._layout is None:
-            self._check_first_states(layout)
+            _check_first_states(layout, self.state_key, self.metadata)
             self._layout = layout
             return
         for name, (shape, dtype) in layout.items():
@@ -228,24 +220,6 @@ class TransitionDataset(DatasetFiles):
                     f"but the dataset holds {list(want_shape)} and {want_dtype}; nothing was "
                     "stored (a dataset holds one env's transitions)"
                 )
-
-    def _check_first_states(
-        self, layout: dict[NestedKey, tuple[tuple[int, ...], torch.dtype]]
-    ) -> None:
-        """The first batch's state and next state agree, and match ``metadata["state_shape"]``."""
-        shape, next_shape = layout[self.state_key][0], layout[("next", self.state_key)][0]
-        want = self.metadata.get("state_shape")
-        if want is not None and list(shape) != list(want):
-            raise ValueError(
-                f"transitions' {self.state_key!r} has trailing shape {list(shape)}, but the "
-                f"dataset's metadata says state_shape={list(want)} (env_id="
-                f"{self.metadata['env_id']!r}); nothing was stored"
-            )
-        if next_shape != shape:
-            raise ValueError(
-                f"transitions' state has trailing shape {list(shape)} but their next state "
-                f"{list(next_shape)}; nothing was stored"
-            )
 
     def tensors(self) -> TensorDictBase:
         """All stored transitions as one ``[N]`` TensorDict (a view of the storage)."""
@@ -311,6 +285,41 @@ class TransitionDataset(DatasetFiles):
             td.get(self.state_key),
             td.get(("next", self.state_key)),
             length,
+        )
+
+
+#: Trailing shape and dtype of each stored field.
+Layout = dict[NestedKey, tuple[tuple[int, ...], torch.dtype]]
+
+
+def _batch_layout(batch: TensorDictBase, fields: list[NestedKey]) -> Layout:
+    """The trailing shape and dtype of ``fields`` in an ``[N, T]`` batch; floats must be float32."""
+    layout = {}
+    for name in fields:
+        value = batch.get(name)
+        layout[name] = (tuple(value.shape[2:]), value.dtype)
+        if value.dtype.is_floating_point and value.dtype != torch.float32:
+            raise ValueError(
+                f"transitions' {name!r} is {value.dtype}, expected torch.float32 (the world "
+                "model's dtype): wrap a float64 env in torchrl's DoubleToFloat transform"
+            )
+    return layout
+
+
+def _check_first_states(layout: Layout, state_key: NestedKey, metadata: Mapping[str, Any]) -> None:
+    """The first batch's state and next state agree, and match ``metadata["state_shape"]``."""
+    shape, next_shape = layout[state_key][0], layout[("next", state_key)][0]
+    want = metadata.get("state_shape")
+    if want is not None and list(shape) != list(want):
+        raise ValueError(
+            f"transitions' {state_key!r} has trailing shape {list(shape)}, but the "
+            f"dataset's metadata says state_shape={list(want)} (env_id="
+            f"{metadata['env_id']!r}); nothing was stored"
+        )
+    if next_shape != shape:
+        raise ValueError(
+            f"transitions' state has trailing shape {list(shape)} but their next state "
+            f"{list(next_shape)}; nothing was stored"
         )
 
 
