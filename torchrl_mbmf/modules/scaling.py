@@ -68,6 +68,13 @@ class StandardScaling:
                 f"state batch {tuple(state.shape[:-1])} and action batch "
                 f"{tuple(action.shape[:-1])} differ"
             )
+        model = self.state_loc.dtype
+        for name, value in (("state", state), ("action", action)):
+            if torch.promote_types(value.dtype, model) != model:
+                raise ValueError(
+                    f"{name} is {value.dtype}, the model is {model}: convert the inputs (a "
+                    "float64 env: torchrl's DoubleToFloat transform) or the model"
+                )
 
     @torch.no_grad()
     def fit_normalizer(
@@ -89,6 +96,11 @@ class StandardScaling:
             ValueError: on wrong sizes, fewer than 2 transitions, or non-finite values.
         """
         self._check(state, action)
+        if next_state.shape != state.shape or reward.numel() != state[..., 0].numel():
+            raise ValueError(
+                f"next_state {tuple(next_state.shape)} must have the state's shape "
+                f"{tuple(state.shape)} and reward {tuple(reward.shape)} one value per transition"
+            )
         reward = reward.reshape(*state.shape[:-1], 1)
         state = state.reshape(-1, self.state_dim)
         if state.shape[0] < 2:

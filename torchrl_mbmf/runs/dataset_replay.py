@@ -26,7 +26,8 @@ from torchrl.envs import EnvBase
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.data import CorruptDatasetError, TransitionDataset
-from torchrl_mbmf.data.transitions import TRAJ_KEY, episode_ends
+from torchrl_mbmf.data.dataset_files import TERMINATED_KEY
+from torchrl_mbmf.data.episodes import TRAJ_KEY, episode_ends
 from torchrl_mbmf.runs.storage import DatasetCheckpointAdapter, verify_checkpoint
 
 __all__ = [
@@ -104,18 +105,19 @@ def _episode_starts(data: TensorDictBase, state_key: Any) -> tuple[list[int], se
     return [0, *starts.tolist()], {0, *forced.tolist()}
 
 
-def _stored(batch: TensorDictBase, state_key: Any, reward_key: Any) -> TensorDictBase:
+def _stored(
+    batch: TensorDictBase, state_key: Any, reward_key: Any, terminated: bool
+) -> TensorDictBase:
     """The dataset's fields of a collector batch (without the trajectory ids)."""
+    nxt = {
+        state_key: batch.get(("next", state_key)),
+        reward_key: batch.get(("next", reward_key)),
+        "done": episode_ends(batch).unsqueeze(-1),
+    }
+    if terminated:  # a dataset saved before the flags were stored has none to check
+        nxt["terminated"] = batch.get(TERMINATED_KEY).reshape(*batch.batch_size, 1).bool()
     return TensorDict(
-        {
-            state_key: batch.get(state_key),
-            "action": batch.get("action"),
-            "next": {
-                state_key: batch.get(("next", state_key)),
-                reward_key: batch.get(("next", reward_key)),
-                "done": episode_ends(batch).unsqueeze(-1),
-            },
-        },
+        {state_key: batch.get(state_key), "action": batch.get("action"), "next": nxt},
         batch_size=batch.batch_size,
     )
 
@@ -224,7 +226,7 @@ class DatasetReplay:
                     replayer.reseed(seed + a)
                     resets.append((a, seed + a))
                     batch = replayer.steps(a, b)
-                got = _stored(batch, state_key, reward_key)
+                got = _stored(batch, state_key, reward_key, dataset.stores_terminated)
                 for key in got.keys(True, True):
                     if not torch.equal(got.get(key), data.get(key)[a:b]):
                         rows = (got.get(key) != data.get(key)[a:b]).reshape(b - a, -1).any(-1)
@@ -270,6 +272,7 @@ class DatasetReplay:
         n = len(self)
         keys = [tuple(k) if isinstance(k, list) else k for k in self.record["keys"]]
         state_key, reward_key = keys[0], keys[3][1]
+        terminated = TERMINATED_KEY in keys
         parts: list[TensorDictBase] = []
         if n:
             replayer = _Replayer(env, self.actions)
@@ -279,7 +282,7 @@ class DatasetReplay:
                     replayer.reseed(seed)
                     for start in range(a, b, chunk):
                         batch = replayer.steps(start, min(b, start + chunk))
-                        parts.append(_stored(batch, state_key, reward_key))
+                        parts.append(_stored(batch, state_key, reward_key, terminated))
             finally:
                 replayer.close()
         stored = None
