@@ -15,6 +15,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchrl_mbmf.modules.mlp import affine
+
 __all__ = ["FusedMSEGradient"]
 
 
@@ -136,7 +138,7 @@ class FusedMSEGradient:
         with torch.no_grad():
             for i, layer in enumerate(self.linears):
                 buffer = None if out is None else out[i]
-                x = torch.addmm(layer.bias, x, layer.weight.t(), out=buffer)
+                x = affine(x, layer.weight.t(), layer.bias, out=buffer)  # nn.Linear's addmm
                 if i < last:
                     x.relu_()
         return x
