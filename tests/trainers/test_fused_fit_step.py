@@ -63,7 +63,9 @@ def test_only_plain_relu_networks():
     ]
     hooked = copy.deepcopy(relu)
     hooked[2].register_forward_hook(lambda *args: None)
-    for net in [*others, hooked]:
+    grad_hooked = copy.deepcopy(relu)
+    grad_hooked[0].weight.register_post_accumulate_grad_hook(lambda p: None)
+    for net in [*others, hooked, grad_hooked]:
         assert FusedMSEGradient.for_net(net) is None
     with pytest.raises(ValueError, match=r"nn\.Linear layers"):
         FusedMSEGradient([])

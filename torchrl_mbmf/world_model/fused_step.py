@@ -42,7 +42,9 @@ def _relu_mlp_linears(net: nn.Module) -> list[nn.Linear] | None:
             return None
     for module in layers:
         for p in module.parameters(recurse=False):
-            if p._backward_hooks or p.is_sparse or p.device.type != "cpu":
+            if p._backward_hooks or getattr(p, "_post_accumulate_grad_hooks", None):
+                return None  # autograd would call them
+            if p.is_sparse or p.device.type != "cpu":
                 return None
     return layers[0::2]
 
