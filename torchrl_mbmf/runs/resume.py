@@ -99,7 +99,7 @@ def resume_changes(
 
 
 #: Settings added after runs were written, with the value a config without them means.
-IMPLIED_DEFAULTS: dict[str, Any] = {"restart": False}
+IMPLIED_DEFAULTS: dict[str, Any] = {"restart": False, "sac.loss_function": "smooth_l1"}
 
 
 def flatten_settings(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
