@@ -125,9 +125,7 @@ def make_test_sac_loss(
         ),
         in_keys=["observation", "action"],
     )
-    loss = SACLoss(
-        actor, qvalue, num_qvalue_nets=2, action_spec=spec, loss_function=loss_function
-    )
+    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=spec, loss_function=loss_function)
     loss.make_value_estimator(gamma=0.99)
     b = batch_size
     batch = TensorDict(

@@ -65,7 +65,7 @@ def test_fused_updates_track_stock_updates():
 def test_fused_rejects_an_unsupported_q_distance():
     loss, _ = make_test_sac_loss()
     loss.loss_function = "huber"
-    with pytest.raises(ValueError, match="loss_function.*'huber'"):
+    with pytest.raises(ValueError, match=r"loss_function.*'huber'"):
         FusedSACUpdate(loss, torch.optim.Adam(loss.parameters()), SoftUpdate(loss, tau=0.1))
 
 
