@@ -5,6 +5,8 @@
     python benchmarks/peers.py --quick                # tiny budgets, one repetition: a smoke test
     python benchmarks/peers.py --methods ppo,sac --repeats 3 --threads 2
     python benchmarks/peers.py --methods ppo --ours-override collector=stock
+    python benchmarks/peers.py --methods ppo --repeats 4 --ours-at c0ad5c2
+                                                      # also ours at a commit, alternated
 
 Every run is a fresh process that trains from scratch for the same real step budget, seed and
 thread count (torch threads and OMP/MKL/OpenBLAS env vars): ours is ``recipes/train.py`` (no
@@ -18,7 +20,9 @@ clips, ours a TanhNormal); SB3's SAC takes our
 ``configs/algo/sac.yaml``, which equals SB3's defaults (256x256 ReLU, batch 256, one gradient
 step per env step, buffer 1e6, auto entropy from 1.0). ``ppo_mpc`` and ``sac_mpc`` have no SB3
 counterpart: ours only. For our runs the table also splits a real step's time as the run's
-``summary.json`` ``time_breakdown`` records it (``n/a`` where the run has none).
+``summary.json`` ``time_breakdown`` records it (``n/a`` where the run has none). With
+``--ours-at COMMIT``, ours at that commit (a temporary git worktree, its package first on the
+path) runs too, after ours in each repetition: the summary adds its rate and ``ours/ours@``.
 
 Writes benchmarks/results/peers.json (peers_quick.json with --quick; --out overrides) and
 prints tables.
@@ -31,6 +35,7 @@ import importlib.metadata
 import json
 import math
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -100,12 +105,12 @@ def sb3_worker(spec: dict[str, Any]) -> None:
 
 
 # ------------------------------------------------------------------------------ runners
-def _subprocess_env(threads: int) -> dict[str, str]:
+def _subprocess_env(threads: int, root: Path = ROOT) -> dict[str, str]:
     env = dict(os.environ)
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         env[var] = str(threads)
     # The checkout's package wins over any other installed copy.
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH")]))
     return env
 
 
@@ -145,9 +150,16 @@ def our_overrides(method: str, b: dict[str, int], quick: bool) -> tuple[int, lis
 
 
 def run_ours(
-    method: str, steps: int, extra: list[str], seed: int, threads: int, eval_episodes: int
+    method: str,
+    steps: int,
+    extra: list[str],
+    seed: int,
+    threads: int,
+    eval_episodes: int,
+    root: Path = ROOT,
 ) -> dict[str, Any]:
-    """One ``recipes/train.py`` process; its summary's seconds, steps and time breakdown."""
+    """One ``recipes/train.py`` process (of the checkout ``root``); its summary's seconds,
+    steps and time breakdown."""
     from omegaconf import OmegaConf
 
     past = 100 * steps  # no periodic evaluation or checkpoint inside the budget
@@ -155,7 +167,7 @@ def run_ours(
         run_dir = Path(tmp) / "run"
         cmd = [
             sys.executable,
-            str(ROOT / "recipes" / "train.py"),
+            str(root / "recipes" / "train.py"),
             f"method={method}",
             f"seed={seed}",
             f"total_steps={steps}",
@@ -170,7 +182,7 @@ def run_ours(
         ]
         start = time.perf_counter()
         proc = subprocess.run(
-            cmd, cwd=tmp, env=_subprocess_env(threads), capture_output=True, text=True
+            cmd, cwd=tmp, env=_subprocess_env(threads, root), capture_output=True, text=True
         )
         process_s = time.perf_counter() - start
         _check(proc, f"ours {method}")
@@ -202,7 +214,26 @@ def run_ours(
         "torch_threads": torch_threads,
         "process_s": process_s,
         "breakdown": breakdown if isinstance(breakdown, dict) else None,
+        "params_sha256": summary.get("params_sha256"),
     }
+
+
+def checkout_at(commit: str) -> Path:
+    """A temporary git worktree of ``commit`` (remove it with :func:`remove_checkout`)."""
+    path = Path(tempfile.mkdtemp(prefix="peers_at_")) / commit
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(path), commit],
+        check=True,
+        capture_output=True,
+    )
+    return path
+
+
+def remove_checkout(path: Path) -> None:
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(path)], capture_output=True
+    )
+    shutil.rmtree(path.parent, ignore_errors=True)
 
 
 def run_sb3(algo: str, steps: int, random_steps: int, seed: int, threads: int) -> dict[str, Any]:
@@ -268,25 +299,32 @@ def breakdown_row(run: dict[str, Any]) -> dict[str, object]:
     return row
 
 
-def summarise(runs: list[dict[str, Any]], methods: list[str]) -> list[dict[str, object]]:
+def summarise(
+    runs: list[dict[str, Any]], methods: list[str], at: str | None = None
+) -> list[dict[str, object]]:
     rows = []
     for method in methods:
         rates = {
             impl: [r["steps_per_s"] for r in runs if r["method"] == method and r["impl"] == impl]
-            for impl in ("ours", "sb3")
+            for impl in ("ours", "sb3", f"ours@{at}")
         }
         ours = statistics.mean(rates["ours"]) if rates["ours"] else None
         sb3 = statistics.mean(rates["sb3"]) if rates["sb3"] else None
-        rows.append(
-            {
-                "method": method,
-                "ours steps/s": ours,
-                "sb3 steps/s": sb3,
-                "ours/sb3": ours / sb3 if ours and sb3 else None,
-                "ours runs": len(rates["ours"]),
-                "sb3 runs": len(rates["sb3"]),
-            }
-        )
+        row = {
+            "method": method,
+            "ours steps/s": ours,
+            "sb3 steps/s": sb3,
+            "ours/sb3": ours / sb3 if ours and sb3 else None,
+            "ours runs": len(rates["ours"]),
+            "sb3 runs": len(rates["sb3"]),
+        }
+        if at is not None:
+            old = rates[f"ours@{at}"]
+            row[f"ours@{at} steps/s"] = statistics.mean(old) if old else None
+            # per repetition (run back to back), then the median: drift hits both alike
+            pairs = [a / b for a, b in zip(rates["ours"], old, strict=False) if a and b]
+            row["ours/ours@"] = statistics.median(pairs) if pairs else None
+        rows.append(row)
     return rows
 
 
@@ -316,6 +354,9 @@ def main() -> None:
         metavar="KEY=VALUE",
         help="extra recipes/train.py override for every run of ours (repeatable), for example "
         "collector=stock",
+    )
+    parser.add_argument(
+        "--ours-at", metavar="COMMIT", help="also run ours at this commit (a git worktree)"
     )
     parser.add_argument(
         "--eval-episodes",
@@ -371,20 +412,45 @@ def main() -> None:
         "repeats": args.repeats,
         "eval_episodes": args.eval_episodes,
         "ours_overrides": args.ours_override,
+        "ours_at": args.ours_at,
         "seed": args.seed,
         "budgets": budget,
         "versions": versions,
     }
     runs: list[dict[str, Any]] = []
+    at_root = checkout_at(args.ours_at) if args.ours_at else None
+    try:
+        _run_all(args, methods, budget, with_sb3, at_root, out, extra, runs, versions)
+    finally:
+        if at_root is not None:
+            remove_checkout(at_root)
+    summary = summarise(runs, methods, args.ours_at)
+    _write(out, extra, runs, summary)
+    _print_tables(runs, summary, note, out)
+
+
+def _run_all(
+    args: argparse.Namespace,
+    methods: list[str],
+    budget: dict[str, int],
+    with_sb3: bool,
+    at_root: Path | None,
+    out: Path,
+    extra: dict[str, Any],
+    runs: list[dict[str, Any]],
+    versions: dict[str, str | None],
+) -> None:
     for method in methods:
         steps, overrides = our_overrides(method, budget, args.quick)
         overrides += args.ours_override
         for rep in range(args.repeats):
-            impls = ["ours"] + (["sb3"] if with_sb3 and method in SB3_ALGO else [])
+            impls = ["ours"] + ([f"ours@{args.ours_at}"] if at_root is not None else [])
+            impls += ["sb3"] if with_sb3 and method in SB3_ALGO else []
             for impl in impls:
-                if impl == "ours":
+                if impl.startswith("ours"):
+                    root = ROOT if impl == "ours" else at_root
                     res = run_ours(
-                        method, steps, overrides, args.seed, args.threads, args.eval_episodes
+                        method, steps, overrides, args.seed, args.threads, args.eval_episodes, root
                     )
                 else:
                     random_steps = budget["sac_random"] if method == "sac" else 0
@@ -407,9 +473,12 @@ def main() -> None:
                     flush=True,
                 )
                 # partial results survive an interrupted benchmark
-                _write(out, extra, runs, summarise(runs, methods))
-    summary = summarise(runs, methods)
-    _write(out, extra, runs, summary)
+                _write(out, extra, runs, summarise(runs, methods, args.ours_at))
+
+
+def _print_tables(
+    runs: list[dict[str, Any]], summary: list[dict[str, object]], note: str, out: Path
+) -> None:
     print()
     print_table(
         [
@@ -428,10 +497,10 @@ def main() -> None:
     )
     print()
     print_table(summary)
-    ours = [r for r in runs if r["impl"] == "ours"]
+    ours = [r for r in runs if r["impl"].startswith("ours")]
     if ours:
         print("\nWhere a real step's time goes (ours; ms per real step, % of the total):")
-        print_table([breakdown_row(r) for r in ours])
+        print_table([{**breakdown_row(r), "impl": r["impl"]} for r in ours])
     print()
     print(note)
     print(f"wrote {out}")

@@ -4,6 +4,8 @@ python benchmarks/planner.py               # 1 torch thread -> results/planner.j
 python benchmarks/planner.py --threads 2   # -> results/planner_threads2.json
 python benchmarks/planner.py --horizon 25 --previous COMMIT --batches 1 --no-collection
                                            # -> results/planner_h25.json
+python benchmarks/planner.py --batches 1 --no-collection --rounds 31
+                                           # the 1-state plan only -> results/planner_b1.json
 
 Every planner plans from the same real states on the same thesis-sized model (24-500-500-19)
 and PPO actor (17-64-64-6; ``--distribution``: ``normal``, the recipes' Gaussian with a tanh of
@@ -15,9 +17,11 @@ ratios. Rows:
 - ``ours``: ``PolicyGuidedMPCPlanner`` with its fused rollout (the default).
 - ``step loop``: the same planner with ``fused_rollout = False`` (the per-step loop it is
   tested against; bit-identical results).
-- ``previous``: ``PolicyGuidedMPCPlanner`` of the commit ``--previous`` (default: the last one
-  before the fused rollout), imported from git under a private package name (every file of
-  the planners' package at that commit). Skipped outside a git checkout.
+- ``previous (COMMIT)``: ``PolicyGuidedMPCPlanner`` of each commit of ``--previous`` (default:
+  the last one before the fused rollout, and the last one before the shared MLP helper and
+  the reused noise buffer), imported from git under a private package name (every file of
+  the planners' package at that commit). Skipped outside a git checkout. The speedup column
+  is against the last of them.
 - ``torchrl CEMPlanner(optim_steps=1, top_k=1)`` on the same learned env (per state in turn
   for ``B > 1``: its dims assume an unbatched env).
 
@@ -51,7 +55,7 @@ from torchrl_mbmf.envs import LearnedDynamicsEnv, make_half_cheetah_env
 from torchrl_mbmf.modules import DeltaDynamicsModel, PolicyGuidedMPCPlanner, make_ppo_actor_critic
 
 M, H = 15, 10
-PREVIOUS = "1848f94"  # the planner before the fused rollout
+PREVIOUS = ("1848f94", "c0ad5c2")  # before the fused rollout; before the MLP helper
 ROOT = Path(__file__).resolve().parents[1]
 PLANNERS = "torchrl_mbmf/modules/planners"
 
@@ -166,7 +170,9 @@ def collection_fps(num_envs: int, frames: int, distribution: str, horizon: int) 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument("--previous", default=PREVIOUS, help="commit of the previous planner")
+    parser.add_argument(
+        "--previous", nargs="*", default=list(PREVIOUS), help="commits of previous planners"
+    )
     parser.add_argument("--rounds", type=int, default=15, help="alternating rounds")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--no-collection", action="store_true", help="skip the Collector rows")
@@ -194,15 +200,14 @@ def main() -> None:
     )
     env = LearnedDynamicsEnv(model, real)
     flops = plan_flops(model, horizon=h)
-    previous_cls = previous_planner_class(args.previous)
+    previous = {c: previous_planner_class(c) for c in args.previous}
+    previous = {c: cls for c, cls in previous.items() if cls is not None}
     ours = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=h)
     step_loop = PolicyGuidedMPCPlanner(env, actor, num_candidates=M, horizon=h)
     step_loop.fused_rollout = False
     planners: dict[str, object] = {"ours": ours, "step loop": step_loop}
-    if previous_cls is not None:
-        planners[f"previous ({args.previous})"] = previous_cls(
-            env, actor, num_candidates=M, horizon=h
-        )
+    for commit, cls in previous.items():
+        planners[f"previous ({commit})"] = cls(env, actor, num_candidates=M, horizon=h)
     cem = CEMPlanner(env, planning_horizon=h, optim_steps=1, num_candidates=M, top_k=1)
     rows = []
     for batch in args.batches:
@@ -217,7 +222,8 @@ def main() -> None:
             calls["torchrl CEMPlanner(optim_steps=1)"] = lambda parts=parts: [cem(p) for p in parts]
         with torch.no_grad():
             times = alternate(calls, rounds=args.rounds, number=max(5, 40 // batch))
-        ref = next(n for n in times if n.startswith("previous")) if previous_cls else "step loop"
+        olds = [n for n in times if n.startswith("previous")]
+        ref = olds[-1] if olds else "step loop"
         floor = batch * flops / (peak * 1e9)
         for name, sec in times.items():
             ratio = [r / s for r, s in zip(times[ref], sec, strict=True)]
@@ -248,6 +254,7 @@ def main() -> None:
     )
     print_table(rows)
     name = "planner" + (f"_h{h}" if h != H else "")
+    name += "_b1" if args.batches == [1] and args.no_collection and h == H else ""
     name += f"_threads{args.threads}" if args.threads != 1 else ""
     name += f"_{args.distribution}" if args.distribution != "normal" else ""
     path = write(
@@ -256,7 +263,8 @@ def main() -> None:
         {
             "command": " ".join(["python benchmarks/planner.py", *sys.argv[1:]]),
             "actor_distribution": args.distribution,
-            "previous_commit": args.previous if previous_cls is not None else None,
+            "previous_commits": list(previous),
+            "speedup_reference": ref if args.batches else None,
             "matmul_peak_gflops": peak,
             "torch_mm_peak_gflops": mm_peak,
             "packed_linear_peak_gflops": packed_peak,

@@ -47,7 +47,7 @@ def main(cfg: DictConfig) -> None:
         )
         return
     log.info("summary: %s", json.dumps(summary))
-    print(end_of_run_message(summary, cfg.run_dir))
+    print(end_of_run_message(summary, trainer.run_dir))
 
 
 if __name__ == "__main__":

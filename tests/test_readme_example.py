@@ -7,21 +7,27 @@ from pathlib import Path
 
 import torch
 
+from torchrl_mbmf.modules.termination import classification_scores
+
 README = Path(__file__).resolve().parents[1] / "README.md"
 SECTION = "## Use it in your own TorchRL code"
 
 
-def _example() -> str:
+def _examples() -> list[str]:
+    """The python blocks of the section, in order (each continues the one before)."""
     text = README.read_text()
     assert SECTION in text, f"README.md has no {SECTION!r} section"
-    block = re.search(r"```python\n(.*?)```", text[text.index(SECTION) :], re.S)
-    assert block is not None, f"no python block under {SECTION!r}"
-    return block.group(1)
+    section = text[text.index(SECTION) :]
+    section = section[: section.index("\n## ", len(SECTION))]
+    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert blocks, f"no python block under {SECTION!r}"
+    return blocks
 
 
 def test_readme_example_on_hopper():
     namespace: dict[str, object] = {}
-    exec(compile(_example(), str(README), "exec"), namespace)
+    first, *rest = _examples()
+    exec(compile(first, str(README), "exec"), namespace)
     env, model, model_env = namespace["env"], namespace["model"], namespace["model_env"]
     data, batch, optim = namespace["data"], namespace["batch"], namespace["optim"]
     # the learned env took Hopper's action bounds from the real env's spec
@@ -42,3 +48,14 @@ def test_readme_example_on_hopper():
     # PPO took one step per batch
     steps = {int(s["step"]) for s in optim.state_dict()["state"].values()}
     assert steps == {2}
+    # the learned termination head of the next block: fitted on the dataset's real terminated
+    # flags, it is the termination_fn of its learned env and the planner's
+    assert len(rest) == 1
+    exec(compile(rest[0], str(README), "exec"), namespace)
+    head, learned_env = namespace["head"], namespace["learned_env"]
+    assert learned_env.termination_fn is head and namespace["planner"].env is learned_env
+    with torch.no_grad():
+        predicted = head(td["next", "observation"])
+    scores = classification_scores(predicted, ends)
+    # terminal transitions are rare (about 5%): balanced accuracy and recall, not accuracy
+    assert scores["balanced_accuracy"] > 0.85 and scores["recall"] > 0.8, scores

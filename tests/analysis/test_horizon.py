@@ -91,7 +91,7 @@ def test_errors():
     ("build", "x_index"),
     [
         (lambda: make_env("Hopper-v5"), 0),  # x first; dim 1 is the height
-        (lambda: make_gym_state_env("Hopper-v5"), None),  # Gymnasium's default: no x in it
+        (lambda: make_gym_state_env("Hopper-v5", layout=False), None),  # no x in it
         (lambda: make_env("Pendulum-v1"), None),
         (lambda: make_env("MountainCarContinuous-v0"), None),  # no known layout
     ],

@@ -196,7 +196,7 @@ def test_interrupted_save_leaves_nothing(tmp_path, monkeypatch):
     def crash(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr("torchrl_mbmf.data.transitions.os.replace", crash)
+    monkeypatch.setattr("torchrl_mbmf.data.dataset_files.os.replace", crash)
     with pytest.raises(OSError, match="disk full"):
         data.save(tmp_path / "ds")
     assert list(tmp_path.iterdir()) == []
@@ -293,6 +293,17 @@ def test_extend_refuses_another_layout_before_storing(make_bad, message):
     data.extend(_batch(2, 3))
     with pytest.raises(ValueError, match=message):
         data.extend(make_bad())
+    assert len(data) == 6
+
+
+def test_first_extend_checks_the_state_against_the_metadata_and_next_state():
+    data = TransitionDataset({**META, "state_shape": [3]})
+    with pytest.raises(ValueError, match=r"metadata says state_shape=\[3\]"):
+        data.extend(_resized(_resized(_batch(2, 3), "state", 5), ("next", "state"), 5))
+    with pytest.raises(ValueError, match=r"next state \[4\]"):
+        TransitionDataset(META).extend(_resized(_batch(2, 3), ("next", "state"), 4))
+    assert len(data) == 0
+    data.extend(_batch(2, 3))
     assert len(data) == 6
 
 

@@ -48,6 +48,31 @@ def test_state_holds_the_positions_the_layout_names(env_id):
     assert state.shape[-1] == plain + len(layout.hidden_dims) == layout.state_dim
 
 
+@pytest.mark.parametrize("env_id", sorted(TASK_LAYOUTS))
+def test_make_gym_state_env_builds_the_recipes_layout(env_id):
+    """The lower-level builder gives the state and observation ``make_env`` (the recipes) gives."""
+    layout = task_layout(env_id)
+    plain, recipe = make_gym_state_env(env_id, seed=0), make_env(env_id, seed=0)
+    for key in ("state", "observation"):
+        assert (
+            plain.full_observation_spec_unbatched[key]
+            == recipe.full_observation_spec_unbatched[key]
+        ), key
+    torch.manual_seed(0)
+    a = plain.rollout(3)
+    torch.manual_seed(0)
+    b = recipe.rollout(3)
+    for key in ("state", "observation", ("next", "state"), ("next", "observation")):
+        assert torch.equal(a[key], b[key]), key
+    # layout=False: Gymnasium's own observation, all of it shown to the policy
+    own = make_gym_state_env(env_id, layout=False).full_observation_spec_unbatched
+    assert own["state"].shape[-1] == gym.make(env_id).observation_space.shape[-1]
+    assert own["observation"].shape == own["state"].shape
+    if layout.gym_kwargs:
+        with pytest.raises(ValueError, match="pass layout=False"):
+            make_gym_state_env(env_id, exclude_current_positions_from_observation=True)
+
+
 @pytest.mark.parametrize("env_id", CONFIG_TASKS)
 def test_config_tasks_pass_check_env_specs_with_gymnasium_action_bounds(env_id):
     env = make_env(env_id, seed=0)

@@ -79,7 +79,7 @@ def test_rule_equals_gymnasium_terminated(env_id: str, kwargs: dict, terminates:
 
 def test_rule_of_the_package_env_reads_its_layout() -> None:
     # the default gymnasium layout drops x; the package's layout keeps it: both read right
-    for kwargs in ({}, X_FIRST):
+    for kwargs in ({"layout": False}, X_FIRST):
         env = make_gym_state_env("Hopper-v5", seed=0, **kwargs)
         rule = termination_rule_of_env(env)
         with set_exploration_type(ExplorationType.RANDOM):

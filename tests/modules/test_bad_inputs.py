@@ -32,6 +32,19 @@ def test_dynamics_model_arguments(args, kwargs, message):
         DeltaDynamicsModel(*args, **kwargs)
 
 
+def test_dynamics_model_inputs_of_another_shape_or_dtype():
+    model = DeltaDynamicsModel(3, 1, hidden_sizes=(8,))
+    s, a, r = torch.zeros(5, 3), torch.zeros(5, 1), torch.zeros(5, 1)
+    with pytest.raises(ValueError, match=r"next_state \(5, 4\) must have the state's shape"):
+        model.fit_normalizer(s, a, torch.zeros(5, 4), r)
+    with pytest.raises(ValueError, match=r"reward \(4, 1\) one value per transition"):
+        model.fit_normalizer(s, a, s, torch.zeros(4, 1))
+    with pytest.raises(ValueError, match=r"state is torch\.float64, the model is torch\.float32"):
+        model(s.double(), a.double())
+    # a float32 input to a float64 model is promoted, as before
+    assert model.double()(s, a)[0].dtype == torch.float64
+
+
 def test_learned_env_needs_the_real_env():
     with pytest.raises(TypeError, match="env must be the real TorchRL env"):
         LearnedDynamicsEnv(DeltaDynamicsModel(3, 1), None)

@@ -68,11 +68,29 @@ def _kill_after_first_checkpoint(run_dir: Path, *overrides: str) -> None:
     assert not (run_dir / "summary.json").exists(), "the run finished before it could be killed"
 
 
+#: A Hopper run whose planner ends candidates by a learned termination head (saved with the
+#: checkpoint at 400 steps, in the planning phase, and refitted after the resume).
+LEARNED_TERMINATION = [
+    *(o for o in TINY if not o.startswith("env=")),
+    "env=hopper",
+    "world_model.learn_termination=true",
+]
+
+
 @pytest.mark.parametrize(
-    "method", ["ppo", "ppo_mpc", "sac", pytest.param("sac_mpc", marks=pytest.mark.slow)]
+    "method",
+    [
+        "ppo",
+        "ppo_mpc",
+        "sac",
+        pytest.param("sac_mpc", marks=pytest.mark.slow),
+        pytest.param("ppo_mpc_learned_termination", marks=pytest.mark.slow),
+    ],
 )
 def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, method):
     cfg = [f"method={method}", *TINY]
+    if method == "ppo_mpc_learned_termination":
+        cfg = ["method=ppo_mpc", *LEARNED_TERMINATION]
     straight = tmp_path / "straight"
     proc = _run(straight, *cfg)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -67,6 +67,12 @@ def _compose(*overrides: str):
             "sac.hidden_sizes must be a list of integers >= 1, got 64",
         ),
         (["planner.horizon=2.5"], "planner.horizon must be an integer >= 1, got 2.5"),
+        # the refinement keys are checked without a refinement too (were accepted unused)
+        (["planner.temperature=nan"], "planner.temperature must be a finite number >= 0, got nan"),
+        (["planner.temperature=0"], "planner.temperature must be > 0, got 0"),
+        (["planner.min_std=-1"], "planner.min_std must be a finite number >= 0, got -1"),
+        (["planner.iterations=2.5"], "planner.iterations must be an integer >= 1, got 2.5"),
+        (["planner.policy_fraction=1"], "planner.policy_fraction must be in [0, 1.0), got 1"),
         (["ppo.epochs=true"], "ppo.epochs must be an integer >= 1, got True"),
         (["progress=yes"], "progress must be true or false, got 'yes'"),
         (["threads=0"], "threads must be null or an integer >= 1, got 0"),
@@ -175,3 +181,44 @@ def test_resume_changes_split():
     assert {"total_steps", "threads", "eval_episodes", "experiment.name"} <= set(allowed)
     assert not set(refused) & set(allowed)
     assert resume_changes(saved, dict(saved)) == ({}, {})
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("planner.horizon=0", "planner.horizon must be an integer >= 1, got 0"),
+        ("planner.num_candidates=2.5", "planner.num_candidates must be an integer >= 1, got 2.5"),
+    ],
+)
+def test_planner_errors_name_the_planner_group(override, message, tmp_path):
+    # the planner is built inside the world-model part: its error names its own group only
+    cfg = _compose("method=ppo_mpc", "env=pendulum", override)
+    with pytest.raises(ConfigError) as err:
+        build_for_checks(cfg, tmp_path / "run")
+    assert str(err.value) == message
+
+
+def test_a_run_dir_that_is_a_file_is_refused_naming_it(tmp_path):
+    from torchrl_mbmf.runs.claim import RunFolderError
+
+    path = tmp_path / "notes.txt"
+    path.write_text("mine")
+    cfg = _compose("method=ppo", "env=pendulum")
+    with pytest.raises(
+        RunFolderError, match=r"run_dir='.*notes\.txt' is a file, expected a folder"
+    ):
+        build_for_checks(cfg, path)
+    assert path.read_text() == "mine"
+
+
+def test_a_run_dir_that_cannot_be_created_or_written_is_refused(tmp_path, monkeypatch):
+    import torchrl_mbmf.runs.claim as claim
+
+    (tmp_path / "file").write_text("")
+    cfg = _compose("method=ppo", "env=pendulum")
+    with pytest.raises(claim.RunFolderError, match=r"file/run' cannot be created"):
+        build_for_checks(cfg, tmp_path / "file" / "run")
+    # an unwritable folder (root writes anywhere: the permission check is what is tested)
+    monkeypatch.setattr(claim.os, "access", lambda path, mode: False)
+    with pytest.raises(claim.RunFolderError, match=r"run' is not writable"):
+        build_for_checks(cfg, tmp_path / "run")

@@ -133,14 +133,15 @@ def render_policy(
 
     from torchrl_mbmf.envs import make_env
     from torchrl_mbmf.runs.export import load_policy
+    from torchrl_mbmf.runs.layout import CONFIG
 
     for name, value in (("seconds", seconds), ("width", width), ("height", height)):
         if not value > 0:
             raise ValueError(f"{name} must be > 0, got {value}")
     run_dir = Path(run_dir)
-    if not (run_dir / "config.yaml").exists():
-        raise FileNotFoundError(f"{run_dir} has no config.yaml; is it a training run folder?")
-    cfg = OmegaConf.load(run_dir / "config.yaml")
+    if not (run_dir / CONFIG).exists():
+        raise FileNotFoundError(f"{run_dir} has no {CONFIG}; is it a training run folder?")
+    cfg = OmegaConf.load(run_dir / CONFIG)
     if "mujoco" not in str(gym.spec(cfg.env.id).entry_point):
         raise ValueError(f"{cfg.env.id} is not a MuJoCo task; only MuJoCo tasks are rendered")
     seed = int(cfg.seed) + 1000 if seed is None else int(seed)

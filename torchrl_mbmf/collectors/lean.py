@@ -126,30 +126,178 @@ def _has_full_spec(policy: Any) -> bool:
     return spec is not None and all(v is not None for v in spec.values(True, True))
 
 
+def _root_td(
+    lay: _Layout, obs: np.ndarray, info: list[np.ndarray], count: int, running: np.float32
+) -> TensorDict:
+    """The root entries the stock env hands the policy at a step."""
+    state = torch.from_numpy(obs).to(torch.float32)
+    entries: dict[NestedKey, torch.Tensor] = {
+        lay.state_key: state,
+        lay.observation.out_keys[0]: lay.observation.observation(state),
+        "step_count": torch.tensor([count]),
+        "episode_reward": torch.tensor([running], dtype=torch.float32),
+    }
+    for key, value in zip(lay.info_keys, info, strict=True):
+        entries[key] = torch.from_numpy(value).to(torch.float32)
+    for key in DONE_KEYS:
+        entries[key] = torch.zeros(1, dtype=torch.bool)
+    return TensorDict(entries, batch_size=[])
+
+
+@dataclass
+class _Steps:
+    """The NumPy arrays of one batch's steps, filled one step at a time."""
+
+    root_obs: np.ndarray
+    next_obs: np.ndarray
+    root_info: list[np.ndarray]
+    next_info: list[np.ndarray]
+    rewards: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    root_count: np.ndarray
+    traj: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int, obs: np.ndarray, info: list[np.ndarray]) -> _Steps:
+        """Room for ``n`` steps of observations like ``obs`` and info entries like ``info``."""
+        return cls(
+            root_obs=np.empty((n, obs.shape[0])),
+            next_obs=np.empty((n, obs.shape[0])),
+            root_info=[np.empty((n, v.shape[0])) for v in info],
+            next_info=[np.empty((n, v.shape[0])) for v in info],
+            rewards=np.empty(n),
+            terminated=np.zeros(n, dtype=bool),
+            truncated=np.zeros(n, dtype=bool),
+            root_count=np.empty(n, dtype=np.int64),
+            traj=np.empty(n, dtype=np.int64),
+        )
+
+    def record_root(
+        self, t: int, obs: np.ndarray, info: list[np.ndarray], count: int, traj: int
+    ) -> None:
+        """Step ``t``'s root entries."""
+        self.root_obs[t] = obs
+        for j, v in enumerate(info):
+            self.root_info[j][t] = v
+        self.root_count[t] = count
+        self.traj[t] = traj
+
+    def record_next(
+        self,
+        t: int,
+        obs: np.ndarray,
+        info: list[np.ndarray],
+        reward: float,
+        terminated: bool,
+        truncated: bool,
+    ) -> None:
+        """Step ``t``'s ``"next"`` entries."""
+        self.next_obs[t] = obs
+        for j, v in enumerate(info):
+            self.next_info[j][t] = v
+        self.rewards[t] = reward
+        self.terminated[t] = terminated
+        self.truncated[t] = truncated
+
+    def first(self, n: int) -> _Steps:
+        """The first ``n`` steps (views)."""
+        if n == self.rewards.shape[0]:
+            return self
+        return _Steps(
+            root_obs=self.root_obs[:n],
+            next_obs=self.next_obs[:n],
+            root_info=[v[:n] for v in self.root_info],
+            next_info=[v[:n] for v in self.next_info],
+            rewards=self.rewards[:n],
+            terminated=self.terminated[:n],
+            truncated=self.truncated[:n],
+            root_count=self.root_count[:n],
+            traj=self.traj[:n],
+        )
+
+
+def _episode_returns(
+    reward: torch.Tensor, root_count: np.ndarray, start_return: np.float32
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``RewardSum``'s running return before and after each step, accumulated as it does.
+
+    In float32, one step at a time, restarting at 0 where ``root_count`` is 0.
+    """
+    n = reward.shape[0]
+    r = reward[:, 0].numpy().astype(np.float32)
+    ep_root = np.empty(n, dtype=np.float32)
+    ep_next = np.empty(n, dtype=np.float32)
+    running = np.float32(start_return)
+    for t in range(n):
+        if root_count[t] == 0:
+            running = np.float32(0.0)
+        ep_root[t] = running
+        running = np.float32(running + r[t])
+        ep_next[t] = running
+    return (
+        torch.from_numpy(ep_root).to(reward.dtype)[:, None],
+        torch.from_numpy(ep_next).to(reward.dtype)[:, None],
+    )
+
+
+def _batch_of(
+    lay: _Layout,
+    steps: _Steps,
+    action_key: NestedKey,
+    start_return: np.float32,
+    actions: list[torch.Tensor],
+) -> TensorDict:
+    """The batch the transform stack would give for the recorded steps (no policy outputs)."""
+    n = steps.rewards.shape[0]
+    f32 = torch.float32
+    root_state = torch.from_numpy(steps.root_obs).to(f32)
+    next_state = torch.from_numpy(steps.next_obs).to(f32)
+    obs_key = lay.observation.out_keys[0]
+    root: dict[NestedKey, Any] = {
+        lay.state_key: root_state,
+        obs_key: lay.observation.observation(root_state),
+    }
+    nxt: dict[NestedKey, Any] = {
+        lay.state_key: next_state,
+        obs_key: lay.observation.observation(next_state),
+    }
+    for key, r_val, n_val in zip(lay.info_keys, steps.root_info, steps.next_info, strict=True):
+        root[key] = torch.from_numpy(r_val).to(f32)
+        nxt[key] = torch.from_numpy(n_val).to(f32)
+    root[action_key] = torch.stack(actions)
+    term = torch.from_numpy(steps.terminated)[:, None]
+    trunc = torch.from_numpy(steps.truncated)[:, None]
+    nxt["terminated"] = term
+    nxt["truncated"] = trunc
+    nxt["done"] = term | trunc
+    for key in DONE_KEYS:
+        root[key] = torch.zeros(n, 1, dtype=torch.bool)
+    count = torch.from_numpy(steps.root_count)[:, None]
+    root["step_count"] = count
+    nxt["step_count"] = count + 1
+    root["collector"] = TensorDict({"traj_ids": torch.from_numpy(steps.traj)}, batch_size=[n])
+    batch = TensorDict({**root, "next": TensorDict(nxt, batch_size=[n])}, batch_size=[n])
+    if lay.reward is not None:
+        reward = lay.reward.compute(batch, batch.get("next"))
+    else:
+        reward = torch.from_numpy(steps.rewards).to(lay.reward_dtype)[:, None]
+    batch.set(("next", "reward"), reward)
+    ep_root, ep_next = _episode_returns(reward, steps.root_count, start_return)
+    batch.set("episode_reward", ep_root)
+    batch.set(("next", "episode_reward"), ep_next)
+    return batch
+
+
 class LeanCollector:
     """Collects batches like :class:`torchrl.collectors.Collector`, at a fraction of its cost.
 
-    A drop-in for ``Collector(env, policy, frames_per_batch=..., total_frames=-1)`` on the envs
-    built by :func:`~torchrl_mbmf.envs.make_gym_state_env` (HalfCheetah with any thesis
-    reward, Pendulum, ...): iterating yields the same batches, key for key and value for
-    value (tested against the stock collector), but the per-step work is only the policy and
-    the gymnasium step. Everything the transform stack computes from the step outputs (float32
-    casts, the state/observation split, the reward transform, the step counter and the running
-    episode return) is computed once per batch over the whole batch, with the same
-    transforms' own functions.
-
-    The policy is called as the stock collector calls it (a tensordict of the current root
-    entries, under ``torch.no_grad()`` and ``ExplorationType.RANDOM``), except for a stock
-    :class:`~torchrl.modules.ProbabilisticActor` with a ``loc``/``scale`` parameter network,
-    which is sampled tensor-in tensor-out (:class:`ActorSampler`: same random numbers, same
-    actions) and whose ``action_log_prob`` is computed for the whole batch at the end, and
-    :class:`~torchrl.envs.utils.RandomPolicy`, whose spec is sampled directly.
-
-    Like the stock collector, it resets the env when it is built (unseeded: seed it with
-    ``env.set_seed`` before), calls a policy without a complete output spec once on that first
-    state, resets an episode that ends at once, and carries the episode in progress over to
-    the next batch. :meth:`supports` tells whether an env has the
-    layout this path knows; use the stock collector otherwise.
+    A drop-in for ``Collector(env, policy, frames_per_batch=..., total_frames=-1)`` on the
+    single envs of :func:`~torchrl_mbmf.envs.make_gym_state_env`: the same batches, key for
+    key and value for value, with the transforms' work done once per batch instead of once
+    per step. It resets the env when built (seed it before). :meth:`supports` tells whether
+    an env has the layout it knows. How it matches the stock collector:
+    ``docs/design/collectors.md``.
 
     Args:
         env: a real env from :func:`~torchrl_mbmf.envs.make_gym_state_env` (one copy,
@@ -161,11 +309,9 @@ class LeanCollector:
         frames_per_batch: real steps per batch.
         total_frames: steps in total, ``-1`` for no end. Defaults to ``-1``.
         exploration_type: the exploration mode the policy runs under. Defaults to
-            ``ExplorationType.RANDOM`` (the stock collector's default); another mode calls the
-            policy through its tensordict interface at every step.
-        policy_device: where the policy's parameters live (for example a GPU): its inputs
-            are moved there and its outputs back to the CPU, where the env and the batches
-            stay. Defaults to ``None`` (the CPU).
+            ``ExplorationType.RANDOM`` (the stock collector's default).
+        policy_device: where the policy's parameters live: its inputs are moved there and
+            its outputs back to the CPU. Defaults to ``None`` (the CPU).
 
     Raises:
         ValueError: if the env is not of a supported layout, or for a non-positive
@@ -264,20 +410,40 @@ class LeanCollector:
         return np.asarray(obs, dtype=np.float64), self._info_arrays(info)
 
     def _root_td(self, obs: np.ndarray, info: list[np.ndarray]) -> TensorDict:
-        """The root entries the stock env hands the policy at this step."""
-        lay = self._layout
-        state = torch.from_numpy(obs).to(torch.float32)
-        entries: dict[NestedKey, torch.Tensor] = {
-            lay.state_key: state,
-            lay.observation.out_keys[0]: lay.observation.observation(state),
-            "step_count": torch.tensor([self._count]),
-            "episode_reward": torch.tensor([self._running], dtype=torch.float32),
-        }
-        for key, value in zip(lay.info_keys, info, strict=True):
-            entries[key] = torch.from_numpy(value).to(torch.float32)
-        for key in DONE_KEYS:
-            entries[key] = torch.zeros(1, dtype=torch.bool)
-        return TensorDict(entries, batch_size=[])
+        return _root_td(self._layout, obs, info, self._count, self._running)
+
+    def _act(self, obs: np.ndarray, info: list[np.ndarray]) -> tuple[torch.Tensor, Any]:
+        """The policy's action at this step (on the CPU) and its outputs to keep, or ``None``."""
+        device = self._device
+        if self._sampler is not None:
+            policy_obs = self._layout.observation.observation(
+                torch.from_numpy(obs).to(torch.float32)
+            )
+            if device is not None:
+                policy_obs = policy_obs.to(device)
+            action, params = self._sampler.sample_with_params(policy_obs)
+            return (action if device is None else action.cpu()), params
+        if self._random:
+            return self.policy.action_spec.rand().get(self._action_key), None
+        td = self._root_td(obs, info)
+        out = self.policy(td if device is None else td.to(device))
+        if device is not None:
+            out = out.to("cpu")
+        return out.get(self._action_key), out
+
+    def _add_policy_outputs(self, batch: TensorDict, outputs: list[Any]) -> None:
+        """Writes what the policy wrote besides the action (the sampler's for the whole batch)."""
+        if self._sampler is not None:
+            params = [torch.stack(p).cpu() for p in zip(*outputs, strict=True)]
+            for key, value in zip(self._sampler.param_keys, params, strict=True):
+                batch.set(key, value)
+            action = batch.get(self._action_key)
+            batch.set("action_log_prob", self._sampler.distribution(*params).log_prob(action))
+        elif outputs:
+            stacked = torch.stack(outputs)
+            for key in stacked.keys(True, True):
+                if key not in batch.keys(True, True):
+                    batch.set(key, stacked.get(key))
 
     # --------------------------------------------------------------------- loop
     def __iter__(self) -> Iterator[TensorDictBase]:
@@ -287,9 +453,8 @@ class LeanCollector:
     def episode(self, max_steps: int = 100_000) -> TensorDictBase:
         """Steps until the first episode end (or ``max_steps``) and returns those steps.
 
-        With a fresh collector this is ``env.rollout(max_steps, policy)`` on the seeded env
-        (tested equal): the env is not reset after the episode's end (the next collection
-        resets it). The collector's frame count is not advanced.
+        On a fresh collector this is ``env.rollout(max_steps, policy)``: the env is not reset
+        after the episode's end, and the frame count is not advanced.
 
         Args:
             max_steps: the most steps. Defaults to ``100_000``.
@@ -309,8 +474,7 @@ class LeanCollector:
         return self._collect(max_steps, stop_at_done=True)
 
     def _collect(self, n: int | None = None, stop_at_done: bool = False) -> TensorDictBase:
-        lay = self._layout
-        gym_env = lay.gym_envs[0]
+        gym_env = self._layout.gym_envs[0]
         count_frames = n is None
         n = self.frames_per_batch if n is None else int(n)
         clock = time.perf_counter
@@ -318,59 +482,25 @@ class LeanCollector:
         if self._current is None:
             self._current = self._reset()
         obs, info = self._current
-        root_obs = np.empty((n, obs.shape[0]))
-        next_obs = np.empty((n, obs.shape[0]))
-        root_info = [np.empty((n, v.shape[0])) for v in info]
-        next_info = [np.empty((n, v.shape[0])) for v in info]
-        rewards = np.empty(n)
-        terminated = np.zeros(n, dtype=bool)
-        truncated = np.zeros(n, dtype=bool)
-        root_count = np.empty(n, dtype=np.int64)
-        traj = np.empty(n, dtype=np.int64)
+        steps = _Steps.empty(n, obs, info)
         start_return = self._running
         actions: list[torch.Tensor] = []
         outputs: list[Any] = []
         act_s = 0.0
         ended = False
-        device = self._device
-        sampler = self._sampler
-        observation = lay.observation.observation
         with torch.no_grad(), set_exploration_type(self.exploration_type):
             for t in range(n):
-                root_obs[t] = obs
-                for j, v in enumerate(info):
-                    root_info[j][t] = v
-                root_count[t] = self._count
-                traj[t] = self._traj
+                steps.record_root(t, obs, info, self._count, self._traj)
                 a0 = clock()
-                if sampler is not None:
-                    policy_obs = observation(torch.from_numpy(obs).to(torch.float32))
-                    if device is not None:
-                        policy_obs = policy_obs.to(device)
-                    action, params = sampler.sample_with_params(policy_obs)
-                    if device is not None:
-                        action = action.cpu()
-                    outputs.append(params)
-                elif self._random:
-                    action = self.policy.action_spec.rand().get(self._action_key)
-                else:
-                    td = self._root_td(obs, info)
-                    out = self.policy(td if device is None else td.to(device))
-                    if device is not None:
-                        out = out.to("cpu")
-                    action = out.get(self._action_key)
+                action, out = self._act(obs, info)
+                if out is not None:
                     outputs.append(out)
                 act_s += clock() - a0
                 actions.append(action)
                 obs, reward, term, trunc, step_info = gym_env.step(action.numpy())
                 obs = np.asarray(obs, dtype=np.float64)
                 info = self._info_arrays(step_info)
-                next_obs[t] = obs
-                for j, v in enumerate(info):
-                    next_info[j][t] = v
-                rewards[t] = reward
-                terminated[t] = term
-                truncated[t] = trunc
+                steps.record_next(t, obs, info, reward, term, trunc)
                 self._count += 1
                 if term or trunc:
                     if stop_at_done:  # as env.rollout: no reset after the episode's end
@@ -378,108 +508,16 @@ class LeanCollector:
                         break
                     obs, info = self._reset()
         self._current = None if ended else (obs, info)
-        if n < rewards.shape[0]:
-            root_obs, next_obs, rewards = root_obs[:n], next_obs[:n], rewards[:n]
-            root_info, next_info = [v[:n] for v in root_info], [v[:n] for v in next_info]
-            terminated, truncated = terminated[:n], truncated[:n]
-            root_count, traj = root_count[:n], traj[:n]
-        batch = self._build_batch(
-            root_obs,
-            next_obs,
-            root_info,
-            next_info,
-            rewards,
-            terminated,
-            truncated,
-            root_count,
-            traj,
-            start_return,
-            actions,
-            outputs,
-        )
-        if not (terminated[-1] or truncated[-1]):
+        steps = steps.first(n)
+        batch = _batch_of(self._layout, steps, self._action_key, start_return, actions)
+        self._add_policy_outputs(batch, outputs)
+        if not (steps.terminated[-1] or steps.truncated[-1]):
             # the episode in progress carries its running return into the next batch
             self._running = np.float32(batch.get(("next", "episode_reward"))[-1, 0].item())
         if count_frames:
             self._frames += n
         self.times.act_s += act_s
         self.times.env_s += clock() - t0 - act_s
-        return batch
-
-    def _build_batch(
-        self,
-        root_obs: np.ndarray,
-        next_obs: np.ndarray,
-        root_info: list[np.ndarray],
-        next_info: list[np.ndarray],
-        rewards: np.ndarray,
-        terminated: np.ndarray,
-        truncated: np.ndarray,
-        root_count: np.ndarray,
-        traj: np.ndarray,
-        start_return: np.float32,
-        actions: list[torch.Tensor],
-        outputs: list[Any],
-    ) -> TensorDictBase:
-        lay = self._layout
-        n = rewards.shape[0]
-        f32 = torch.float32
-        root_state = torch.from_numpy(root_obs).to(f32)
-        next_state = torch.from_numpy(next_obs).to(f32)
-        obs_key = lay.observation.out_keys[0]
-        root: dict[NestedKey, Any] = {
-            lay.state_key: root_state,
-            obs_key: lay.observation.observation(root_state),
-        }
-        nxt: dict[NestedKey, Any] = {
-            lay.state_key: next_state,
-            obs_key: lay.observation.observation(next_state),
-        }
-        for key, r_val, n_val in zip(lay.info_keys, root_info, next_info, strict=True):
-            root[key] = torch.from_numpy(r_val).to(f32)
-            nxt[key] = torch.from_numpy(n_val).to(f32)
-        action = torch.stack(actions)
-        root[self._action_key] = action
-        term = torch.from_numpy(terminated)[:, None]
-        trunc = torch.from_numpy(truncated)[:, None]
-        nxt["terminated"] = term
-        nxt["truncated"] = trunc
-        nxt["done"] = term | trunc
-        for key in DONE_KEYS:
-            root[key] = torch.zeros(n, 1, dtype=torch.bool)
-        count = torch.from_numpy(root_count)[:, None]
-        root["step_count"] = count
-        nxt["step_count"] = count + 1
-        root["collector"] = TensorDict({"traj_ids": torch.from_numpy(traj)}, batch_size=[n])
-        batch = TensorDict({**root, "next": TensorDict(nxt, batch_size=[n])}, batch_size=[n])
-        if lay.reward is not None:
-            reward = lay.reward.compute(batch, batch.get("next"))
-        else:
-            reward = torch.from_numpy(rewards).to(lay.reward_dtype)[:, None]
-        batch.set(("next", "reward"), reward)
-        # RewardSum's running return, accumulated in float32 one step at a time as it does
-        r = reward[:, 0].numpy().astype(np.float32)
-        ep_root = np.empty(n, dtype=np.float32)
-        ep_next = np.empty(n, dtype=np.float32)
-        running = np.float32(start_return)
-        for t in range(n):
-            if root_count[t] == 0:
-                running = np.float32(0.0)
-            ep_root[t] = running
-            running = np.float32(running + r[t])
-            ep_next[t] = running
-        batch.set("episode_reward", torch.from_numpy(ep_root).to(reward.dtype)[:, None])
-        batch.set(("next", "episode_reward"), torch.from_numpy(ep_next).to(reward.dtype)[:, None])
-        if self._sampler is not None:
-            params = [torch.stack(p).cpu() for p in zip(*outputs, strict=True)]
-            for key, value in zip(self._sampler.param_keys, params, strict=True):
-                batch.set(key, value)
-            batch.set("action_log_prob", self._sampler.distribution(*params).log_prob(action))
-        elif outputs:
-            stacked = torch.stack(outputs)
-            for key in stacked.keys(True, True):
-                if key not in batch.keys(True, True):
-                    batch.set(key, stacked.get(key))
         return batch
 
     def shutdown(self) -> None:

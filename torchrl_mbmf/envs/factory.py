@@ -88,16 +88,13 @@ def make_env(
             f"reward={NATIVE_REWARD!r} (its own reward) with no kwargs"
         )
     layout = task_layout(env_id)
-    hidden: tuple[int, ...] = ()
-    if layout is not None:
+    if layout is not None:  # the layout's own message, without make_gym_state_env's hint
         gym_kwargs = layout.make_kwargs(gym_kwargs)
-        hidden = layout.hidden_dims
     return make_gym_state_env(
         env_id,
         num_envs=num_envs,
         seed=seed,
         device=device,
-        drop_state_dims=hidden,
         state_key=state_key,
         observation_key=observation_key,
         **gym_kwargs,

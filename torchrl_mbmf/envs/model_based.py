@@ -101,6 +101,100 @@ def _adopt_action_bounds(
         )
 
 
+def _check_arguments(
+    world_model: DeltaDynamicsModel,
+    env: EnvBase,
+    member_assignment: str | None,
+    disagreement_key: NestedKey | None,
+) -> None:
+    """The types of the model and the env, and the ensemble-only arguments."""
+    if not isinstance(world_model, DeltaDynamicsModel):
+        raise TypeError(
+            f"world_model must be a DeltaDynamicsModel, got {type(world_model).__name__}"
+        )
+    if not isinstance(env, EnvBase):
+        raise TypeError(
+            f"env must be the real TorchRL env (an EnvBase) whose specs and start states the "
+            f"learned env takes, got {type(env).__name__}"
+        )
+    if member_assignment is not None and member_assignment not in MEMBER_ASSIGNMENTS:
+        raise ValueError(
+            f"member_assignment must be one of {MEMBER_ASSIGNMENTS}, got {member_assignment!r}"
+        )
+    members = member_assignment is not None or disagreement_key is not None
+    if members and world_model.ensemble_size < 2:
+        raise TypeError(
+            "member_assignment and disagreement_key need an ensemble (ensemble_size >= 2, "
+            f"such as an EnsembleDeltaDynamicsModel), got {type(world_model).__name__} with "
+            f"ensemble_size={world_model.ensemble_size}"
+        )
+
+
+def _check_model_fits_env(
+    world_model: DeltaDynamicsModel, env: EnvBase, state_key: NestedKey, action_key: NestedKey
+) -> tuple[Composite, TensorSpec]:
+    """The real env's unbatched observation spec and action spec, checked against the model."""
+    obs_spec = env.full_observation_spec_unbatched
+    if state_key not in obs_spec.keys(True):
+        raise KeyError(
+            f"the real env has no {state_key!r} entry in its observation spec; "
+            f"its entries are {sorted(map(str, obs_spec.keys(True, True)))}"
+        )
+    state_spec = obs_spec[state_key]
+    model_dtype = next(world_model.parameters()).dtype
+    if state_spec.dtype != model_dtype:
+        raise TypeError(
+            f"the real env's {state_key!r} is {state_spec.dtype}, the world model computes in "
+            f"{model_dtype}: add torchrl.envs.DoubleToFloat() to the real env (or build the "
+            "model in its dtype)"
+        )
+    if state_spec.shape[-1:] != (world_model.state_dim,):
+        raise ValueError(
+            f"the real env's {state_key!r} has shape {tuple(state_spec.shape)}, the world "
+            f"model expects state_dim={world_model.state_dim}"
+        )
+    action_spec = env.full_action_spec_unbatched[action_key]
+    if action_spec.shape[-1:] != (world_model.action_dim,):
+        raise ValueError(
+            f"the real env's {action_key!r} has shape {tuple(action_spec.shape)}, the world "
+            f"model expects action_dim={world_model.action_dim}"
+        )
+    return obs_spec, action_spec
+
+
+def _learned_specs(
+    obs_spec: Composite,
+    action_spec: TensorSpec,
+    keys: tuple[NestedKey, NestedKey | None, NestedKey, NestedKey, NestedKey | None],
+    batch_size: torch.Size,
+    device: torch.device,
+) -> tuple[Composite, Composite, Composite, Composite]:
+    """The learned env's observation, action, reward and done specs.
+
+    ``keys`` are the state, observation (or ``None``), action, reward and disagreement (or
+    ``None``) keys. A learned model may predict outside the real env's observation bounds:
+    the observation specs are unbounded.
+    """
+    state_key, observation_key, action_key, reward_key, disagreement_key = keys
+    bs = batch_size
+    entries = {state_key: _unbounded_like(obs_spec[state_key])}
+    if observation_key is not None:
+        entries[observation_key] = _unbounded_like(obs_spec[observation_key])
+    observation = Composite(entries).expand(bs).to(device)
+    if disagreement_key is not None:
+        observation[disagreement_key] = Unbounded(shape=(*bs, 1), device=device)
+    action = Composite(
+        {action_key: action_spec.clone().expand(*bs, *action_spec.shape)}, shape=bs
+    ).to(device)
+    reward = Composite({reward_key: Unbounded(shape=(*bs, 1), device=device)}, shape=bs)
+    done = Composite(
+        done=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=device),
+        terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=device),
+        shape=bs,
+    )
+    return observation, action, reward, done
+
+
 class _RealStarts:
     """Start states drawn from the real env's ``reset`` (shared, not copied, with the env)."""
 
@@ -132,49 +226,12 @@ class _RealStarts:
 class LearnedDynamicsEnv(ModelBasedEnvBase):
     """A :class:`~torchrl_mbmf.modules.DeltaDynamicsModel` as a stateless TorchRL environment.
 
-    Planning rolls candidate action sequences out in this env from real states: ``reset`` takes
-    the state from the tensordict it is given (``state_key``), each ``step`` applies the world
-    model to ``(state, action)`` and writes the predicted next state, its policy observation and
-    the predicted reward. The env never auto-resets and accepts any batch shape
-    (``batch_locked=False``), so ``[*B, m]`` candidates of ``[*B]`` real states roll out in one
-    call.
-
-    **Terminations.** Each step sets ``terminated`` (and ``done``) from ``termination_fn``
-    applied to the predicted next state. By default it is the known rule of the real env's
-    Gymnasium task (:func:`~torchrl_mbmf.envs.termination_rule_of_env`: Gymnasium's health
-    conditions for Hopper, Walker2d, Ant, Humanoid, InvertedPendulum and
-    InvertedDoublePendulum; never for HalfCheetah, Pendulum and the other tasks without terminal
-    states; a warning and never for an unknown task). The planners stop each candidate's score
-    at its first terminal step.
-
-    **Action bounds.** The model's action clip is the env's action spec: a model built without
-    bounds (the default of :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`) adopts the
-    spec's (uniform) bounds, a model with other bounds is refused with both named.
-
-    **Start states.** ``reset`` with a tensordict holding ``state_key`` starts there; without
-    one (``env.rollout(n)``, ``check_env_specs``) it resets the real env given at construction
-    (ending that env's current episode) as many times as needed and starts from its initial
-    states, never from an arbitrary state.
-
-    Specs are copied from the real env (unbatched): the state entry, the policy observation entry
-    (when the real env has one, kept in sync through the real env's
-    :class:`~torchrl_mbmf.envs.transforms.StateToObservation`, or ``observation_fn``), the
-    action spec and a ``[1]`` reward. Physics entries read from the real env's info are not part
-    of the model's state and are not copied. It subclasses
-    :class:`~torchrl.envs.model_based.ModelBasedEnvBase` directly (``WorldModelEnv`` in torchrl
-    0.14.1 cannot be built on bounded action specs).
-
-    **Ensembles.** An :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel` steps its
-    members' mean by default. ``member_assignment="cycle"`` rolls element ``i`` of the last
-    batch dim in member ``i mod K`` (an unbatched env uses member 0), the convention of
-    :class:`~torchrl_mbmf.modules.planners.EnsemblePolicyGuidedPlanner`, and a
-    ``disagreement_key`` makes every step write the members' disagreement at its
-    ``(state, action)`` (:meth:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel.disagreement`,
-    ``[*B, 1]``, an observation entry of the spec; ``reset`` writes 0).
-    :class:`~torchrl_mbmf.envs.EnsembleLearnedDynamicsEnv` is this env with both on.
-
-    For planners that need raw speed, :meth:`predict` steps tensors without building
-    tensordicts; it computes exactly what :meth:`step` writes.
+    ``reset`` takes the state from the tensordict it is given (``state_key``; without one, the
+    real env's initial states); each ``step`` writes the model's next state, its policy
+    observation, the predicted reward and ``terminated`` from ``termination_fn``. It never
+    auto-resets and accepts any batch shape, so ``[*B, m]`` candidates roll out in one call.
+    The model adopts the env's action bounds. :meth:`predict` steps plain tensors. Specs,
+    terminations, start states and ensembles: ``docs/design/learned_env.md``.
 
     Args:
         world_model: the fitted dynamics model.
@@ -185,17 +242,17 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         state_key: key of the model state. Defaults to :data:`~torchrl_mbmf.envs.STATE_KEY`.
         observation_key: key of the policy observation, or ``None`` if the policy reads the
             state itself. Defaults to :data:`~torchrl_mbmf.envs.OBSERVATION_KEY` (``None`` is
-            used automatically when the real env has no such entry or when it is the state
-            key, as on a plain ``GymEnv`` with ``state_key="observation"``).
+            used when the real env has no such entry or when it is the state key).
         action_key: action key. Defaults to ``"action"``.
         reward_key: reward key. Defaults to ``"reward"``.
         observation_fn: maps a state tensor to the policy observation. Defaults to the real
             env's ``StateToObservation`` transform.
         device: device of the env. Defaults to the world model's device.
-        member_assignment: ``"cycle"`` or ``"mean"`` (ensembles only, see above). Defaults
-            to ``None``: the members' mean.
-        disagreement_key: key of the members' disagreement (ensembles only), or ``None``.
-            Defaults to ``None``.
+        member_assignment: ``"cycle"`` (element ``i`` of the last batch dim in member
+            ``i mod K``) or ``"mean"`` (ensembles only). Defaults to ``None``: the members'
+            mean.
+        disagreement_key: key of the members' disagreement ``[*B, 1]`` written at every step
+            (ensembles only), or ``None``. Defaults to ``None``.
         termination_fn: ``fn(next_states [..., state_dim]) -> bool [...]``, the terminal
             states. Defaults to ``None``: the known rule of the real env's task.
 
@@ -229,26 +286,7 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         disagreement_key: NestedKey | None = None,
         termination_fn: TerminationFn | None = None,
     ) -> None:
-        if not isinstance(world_model, DeltaDynamicsModel):
-            raise TypeError(
-                f"world_model must be a DeltaDynamicsModel, got {type(world_model).__name__}"
-            )
-        if not isinstance(env, EnvBase):
-            raise TypeError(
-                f"env must be the real TorchRL env (an EnvBase) whose specs and start states the "
-                f"learned env takes, got {type(env).__name__}"
-            )
-        if member_assignment is not None and member_assignment not in MEMBER_ASSIGNMENTS:
-            raise ValueError(
-                f"member_assignment must be one of {MEMBER_ASSIGNMENTS}, got {member_assignment!r}"
-            )
-        members = member_assignment is not None or disagreement_key is not None
-        if members and world_model.ensemble_size < 2:
-            raise TypeError(
-                "member_assignment and disagreement_key need an ensemble (ensemble_size >= 2, "
-                f"such as an EnsembleDeltaDynamicsModel), got {type(world_model).__name__} with "
-                f"ensemble_size={world_model.ensemble_size}"
-            )
+        _check_arguments(world_model, env, member_assignment, disagreement_key)
         if device is None:
             device = next(world_model.parameters()).device
         module = world_model.as_tensordict_module(
@@ -257,35 +295,11 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
         super().__init__(module, device=device, batch_size=batch_size)
         self.dynamics = world_model
         self.state_key = state_key
-
-        obs_spec = env.full_observation_spec_unbatched
-        if state_key not in obs_spec.keys(True):
-            raise KeyError(
-                f"the real env has no {state_key!r} entry in its observation spec; "
-                f"its entries are {sorted(map(str, obs_spec.keys(True, True)))}"
-            )
-        state_spec = obs_spec[state_key]
-        model_dtype = next(world_model.parameters()).dtype
-        if state_spec.dtype != model_dtype:
-            raise TypeError(
-                f"the real env's {state_key!r} is {state_spec.dtype}, the world model computes in "
-                f"{model_dtype}: add torchrl.envs.DoubleToFloat() to the real env (or build the "
-                "model in its dtype)"
-            )
-        if state_spec.shape[-1:] != (world_model.state_dim,):
-            raise ValueError(
-                f"the real env's {state_key!r} has shape {tuple(state_spec.shape)}, the world "
-                f"model expects state_dim={world_model.state_dim}"
-            )
-        action_spec = env.full_action_spec_unbatched[action_key]
-        if action_spec.shape[-1:] != (world_model.action_dim,):
-            raise ValueError(
-                f"the real env's {action_key!r} has shape {tuple(action_spec.shape)}, the world "
-                f"model expects action_dim={world_model.action_dim}"
-            )
+        obs_spec, action_spec = _check_model_fits_env(world_model, env, state_key, action_key)
         _adopt_action_bounds(world_model, action_spec, action_key)
         if termination_fn is None:
             termination_fn = termination_rule_of_env(env)
+        model_dtype = next(world_model.parameters()).dtype
         _check_termination_fn(
             termination_fn, world_model.state_dim, torch.device(self.device), model_dtype
         )
@@ -297,8 +311,6 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
             observation_key = None  # the policy reads the state itself
         self.observation_key = observation_key
         self._observation_fn: Callable[[torch.Tensor], torch.Tensor] | None = None
-        # A learned model may predict outside the real env's observation bounds: unbounded specs.
-        observation_entries = {state_key: _unbounded_like(state_spec)}
         if observation_key is not None:
             if observation_fn is None:
                 transform = _find_state_to_observation(env, state_key, observation_key)
@@ -309,33 +321,22 @@ class LearnedDynamicsEnv(ModelBasedEnvBase):
                     )
                 observation_fn = transform.observation
             self._observation_fn = observation_fn
-            observation_entries[observation_key] = _unbounded_like(obs_spec[observation_key])
-        bs = self.batch_size
-        self.observation_spec = Composite(observation_entries).expand(bs).to(self.device)
-        self.full_action_spec = Composite(
-            {action_key: action_spec.clone().expand(*bs, *action_spec.shape)}, shape=bs
-        ).to(self.device)
-        self.full_reward_spec = Composite(
-            {reward_key: Unbounded(shape=(*bs, 1), device=self.device)}, shape=bs
-        )
-        self.full_done_spec = Composite(
-            done=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            terminated=Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device),
-            shape=bs,
-        )
-        if disagreement_key is not None and disagreement_key in (
-            state_key,
-            observation_key,
-            action_key,
-            reward_key,
-        ):
+        keys = (state_key, observation_key, action_key, reward_key)
+        if disagreement_key is not None and disagreement_key in keys:
             raise ValueError(f"disagreement_key={disagreement_key!r} collides with another key")
         self.member_assignment = member_assignment
         self.disagreement_key = disagreement_key
-        if disagreement_key is not None:
-            spec = self.observation_spec.clone()
-            spec[disagreement_key] = Unbounded(shape=(*bs, 1), device=self.device)
-            self.observation_spec = spec
+        observation, action, reward, done = _learned_specs(
+            obs_spec,
+            action_spec,
+            (state_key, observation_key, action_key, reward_key, disagreement_key),
+            self.batch_size,
+            torch.device(self.device),
+        )
+        self.observation_spec = observation
+        self.full_action_spec = action
+        self.full_reward_spec = reward
+        self.full_done_spec = done
 
     def observation(self, state: torch.Tensor) -> torch.Tensor | None:
         """The policy observation of ``state`` (``None`` when there is no observation key)."""

@@ -18,46 +18,66 @@ from torchrl_mbmf.modules.mlp import build_mlp, check_hidden_sizes
 from torchrl_mbmf.modules.scaling import StandardScaling
 
 
+def _check_arguments(
+    state_dim: int,
+    action_dim: int,
+    ensemble_size: int,
+    probabilistic: bool,
+    log_var_bounds: tuple[float, float],
+    action_bounds: tuple[float | None, float | None],
+) -> tuple[int, float, float]:
+    """Checks :class:`DeltaDynamicsModel`'s arguments; returns ``K`` and the action clip."""
+    k = check_number(ensemble_size, "ensemble_size", minimum=1, integer=True)
+    check_number(state_dim, "state_dim", minimum=1, integer=True)
+    check_number(action_dim, "action_dim", minimum=1, integer=True)
+    action_low, action_high = action_bounds
+    for name, bound in (("action_low", action_low), ("action_high", action_high)):
+        number = isinstance(bound, int | float) and not isinstance(bound, bool)
+        if bound is not None and not (number and not math.isnan(bound)):
+            raise ValueError(f"{name} must be a number or None (no clip), got {bound!r}")
+    low = -math.inf if action_low is None else float(action_low)
+    high = math.inf if action_high is None else float(action_high)
+    if not low < high:
+        raise ValueError(f"action_low={action_low} must be < action_high={action_high}")
+    min_log_var, max_log_var = log_var_bounds
+    if not min_log_var < max_log_var:
+        raise ValueError(f"min_log_var={min_log_var} must be < max_log_var={max_log_var}")
+    if probabilistic and k == 1:
+        raise ValueError(
+            "probabilistic=True needs ensemble_size >= 2 (Gaussian members are trained by "
+            "fit_ensemble); the one network (ensemble_size=1) is deterministic"
+        )
+    return k, low, high
+
+
+def _build_network(
+    n_in: int,
+    n_out: int,
+    hidden_sizes: tuple[int, ...],
+    activation: type[nn.Module],
+    k: int,
+    probabilistic: bool,
+) -> nn.Sequential:
+    """The one network (``K = 1``, ``nn.Linear`` layers) or ``K`` stacked members."""
+    if k == 1:
+        return build_mlp(n_in, hidden_sizes, n_out, activation)
+    # Drawn and dropped so that a seed gives the members the initial weights it gave when the
+    # ensemble was a subclass that first built the one-layer single network.
+    nn.Linear(n_in, n_out)
+    layer = partial(EnsembleLinear, k)
+    out = n_out * (2 if probabilistic else 1)
+    return build_mlp(n_in, hidden_sizes, out, activation, layer)
+
+
 class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
     """MLP world model of ``K`` members predicting the standard-scaled state delta and reward.
 
-    The thesis model (section 5.2, table 7) is ``ensemble_size=1``, the default: inputs are
-    the state and the action, each standard-scaled with statistics of the training data; the
-    network (``24 -> 500 -> 500 -> 19`` for HalfCheetah, ReLU hidden layers, linear output,
-    :class:`torch.nn.Linear` layers) predicts the scaled delta ``s' - s`` and the scaled
-    reward. Actions are clipped to ``[action_low, action_high]`` before scaling when bounds are
-    given; by default there are none, and :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` sets
-    them to its env's action spec (so the model clips as the env's action space does, never
-    to a range of its own: Pendulum's ``[-2, 2]`` stays ``[-2, 2]``). The scaling
-    statistics are buffers shared by all members, saved and loaded with the weights in
-    ``state_dict``; :meth:`fit_normalizer` sets them from data, and :meth:`fold_scaling` is
-    the one fold of the scaling into the weights that every fast path uses.
-
-    With ``ensemble_size=K >= 2`` the ``K`` independently initialised members are stacked
-    tensors ``[K, in, out]`` (``EnsembleLinear``), evaluated in one batched op per layer;
-    ``forward``, :meth:`predict_scaled` and :meth:`fused_step` then give the members' mean,
-    or one member per batch row with ``member_index``. The member methods
-    (:meth:`forward_members`, :meth:`disagreement`, :meth:`member_loss`, :meth:`member`,
-    :meth:`fused_members`, ...) work for every ``K``; ``K = 1`` is an ensemble of one
-    (disagreement 0, ``member(0)`` a copy). The ensemble-only parts of the stack (the
-    bootstrapped fit ``fit_ensemble``, ``EnsembleLearnedDynamicsEnv``, the ensemble planner)
-    need ``K >= 2``; :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel` is this class
-    with ``num_members=5`` by default.
-
-    **Gaussian outputs.** With ``probabilistic=True`` (``K >= 2``) each member also outputs a
-    log-variance per output (scaled units), bounded to ``[min_log_var, max_log_var]`` (soft
-    bounds as in PETS, ``lv = max - softplus(max - raw)`` then ``lv = min + softplus(lv -
-    min)``, then a clamp that only removes the second softplus' tiny overshoot of ``max``);
-    :meth:`member_loss` is then the Gaussian negative log-likelihood. Predictions in real units
-    always use the means.
-
-    ``forward(state, action)`` returns the next state and the reward in real units, so the
-    module plugs into TorchRL as a :class:`~tensordict.nn.TensorDictModule` (see
-    :meth:`as_tensordict_module`); :meth:`predict_scaled` gives the network output the
-    training loss compares with :meth:`scale_targets`.
-
-    References: Chua et al., "Deep Reinforcement Learning in a Handful of Trials using
-    Probabilistic Dynamics Models" (PETS), NeurIPS 2018.
+    ``ensemble_size=1`` (the default) is the thesis model (section 5.2, table 7): one MLP on
+    the standard-scaled ``(state, action)``. ``K >= 2`` stacks ``K`` members evaluated in one
+    batched op per layer; ``forward`` then gives their mean, or one member per row with
+    ``member_index``, and ``probabilistic=True`` adds a bounded log-variance per output (PETS,
+    Chua et al., 2018). ``forward`` works in real units; the scaling statistics are buffers
+    set by :meth:`fit_normalizer`. Design: ``docs/design/dynamics_model.md``.
 
     Args:
         state_dim: size of the state (18 for the thesis' HalfCheetah state).
@@ -73,8 +93,7 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
             ``-10.0``.
         max_log_var: upper soft bound of the log-variance (scaled units). Defaults to ``0.5``.
         action_low: lower clip of the action, or ``None`` for none. Defaults to ``None``
-            (set from the env's action spec by ``LearnedDynamicsEnv``; the thesis'
-            HalfCheetah model clips to ``[-1, 1]``, its action space).
+            (set from the env's action spec by ``LearnedDynamicsEnv``).
         action_high: upper clip of the action, or ``None`` for none. Defaults to ``None``.
 
     Examples:
@@ -108,24 +127,14 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         action_high: float | None = None,
     ) -> None:
         super().__init__()
-        k = check_number(ensemble_size, "ensemble_size", minimum=1, integer=True)
-        check_number(state_dim, "state_dim", minimum=1, integer=True)
-        check_number(action_dim, "action_dim", minimum=1, integer=True)
-        for name, bound in (("action_low", action_low), ("action_high", action_high)):
-            number = isinstance(bound, int | float) and not isinstance(bound, bool)
-            if bound is not None and not (number and not math.isnan(bound)):
-                raise ValueError(f"{name} must be a number or None (no clip), got {bound!r}")
-        low = -math.inf if action_low is None else float(action_low)
-        high = math.inf if action_high is None else float(action_high)
-        if not low < high:
-            raise ValueError(f"action_low={action_low} must be < action_high={action_high}")
-        if not min_log_var < max_log_var:
-            raise ValueError(f"min_log_var={min_log_var} must be < max_log_var={max_log_var}")
-        if probabilistic and k == 1:
-            raise ValueError(
-                "probabilistic=True needs ensemble_size >= 2 (Gaussian members are trained by "
-                "fit_ensemble); the one network (ensemble_size=1) is deterministic"
-            )
+        k, low, high = _check_arguments(
+            state_dim,
+            action_dim,
+            ensemble_size,
+            probabilistic,
+            (min_log_var, max_log_var),
+            (action_low, action_high),
+        )
         self.state_dim = int(state_dim)
         self.action_dim = int(action_dim)
         self.hidden_sizes = check_hidden_sizes(hidden_sizes)
@@ -137,21 +146,8 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
         self.min_log_var = float(min_log_var)
         self.max_log_var = float(max_log_var)
         n_in, n_out = state_dim + action_dim, state_dim + 1
-        if k == 1:
-            self.net = build_mlp(n_in, self.hidden_sizes, n_out, activation)
-        else:
-            # Drawn and dropped so that a seed gives the members the initial weights it gave
-            # when the ensemble was a subclass that first built the one-layer single network.
-            nn.Linear(n_in, n_out)
-            layer = partial(EnsembleLinear, k)
-            out = n_out * (2 if self.probabilistic else 1)
-            self.net = build_mlp(n_in, self.hidden_sizes, out, activation, layer)
-        for name, dim in (("state", state_dim), ("action", action_dim), ("delta", state_dim)):
-            self.register_buffer(f"{name}_loc", torch.zeros(dim))
-            self.register_buffer(f"{name}_scale", torch.ones(dim))
-        self.register_buffer("reward_loc", torch.zeros(1))
-        self.register_buffer("reward_scale", torch.ones(1))
-        self.register_buffer("normalizer_fitted", torch.zeros((), dtype=torch.bool))
+        self.net = _build_network(n_in, n_out, self.hidden_sizes, activation, k, probabilistic)
+        self._register_scaling_buffers()
 
     @property
     def action_bounds(self) -> tuple[float, float] | None:
@@ -222,9 +218,7 @@ class DeltaDynamicsModel(StandardScaling, EnsembleMembers, nn.Module):
             state: states ``[*B, state_dim]``.
             action: actions ``[*B, action_dim]``.
             member_index: integers ``[*B]`` in ``[0, K)``: row ``b`` uses member
-                ``member_index[b]``. Defaults to ``None``: the mean over members (the one
-                network for ``K = 1``). For ``K >= 2`` all members are evaluated either way
-                (one batched op), then the rows are picked.
+                ``member_index[b]``. Defaults to ``None``: the mean over members.
         """
         if self.ensemble_size > 1:
             return self.predict_with_disagreement(state, action, member_index)[:2]

@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from torchrl_mbmf.modules.mlp import affine
+
 if TYPE_CHECKING:
     from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 
@@ -56,7 +58,7 @@ class EnsembleLinear(nn.Module):
                 f"in_features={self.in_features}], got {tuple(x.shape)} (an ensemble is trained "
                 "with torchrl_mbmf.world_model.ensemble_fit.fit_ensemble, not fit_dynamics)"
             )
-        return torch.baddbmm(self.bias.unsqueeze(-2), x, self.weight)
+        return affine(x, self.weight, self.bias.unsqueeze(-2))
 
     def extra_repr(self) -> str:
         """Sizes shown by ``repr``."""
@@ -162,7 +164,7 @@ class FusedEnsembleStep:
     def _rest(self, x: torch.Tensor) -> torch.Tensor:
         """Layers after the first one's affine map, on ``[K, N, h0]``."""
         for i, (w, b) in enumerate(zip(self.weights[1:], self.biases[1:], strict=True)):
-            x = torch.baddbmm(b, self.activations[i](x), w)
+            x = affine(self.activations[i](x), w, b)
         return x
 
     def members(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -175,7 +177,7 @@ class FusedEnsembleStep:
         x = torch.cat([state, action.clamp(self.low, self.high)], -1)
         batch = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1])
-        h = torch.addmm(self.shared_bias, x, self.shared_weight)
+        h = affine(x, self.shared_weight, self.shared_bias)
         h = h.view(x.shape[0], self.num_members, -1).transpose(0, 1)
         return self._rest(h).reshape(self.num_members, *batch, self.state_dim + 1)
 
@@ -199,7 +201,7 @@ class FusedEnsembleStep:
         if groups * k != m:
             x = torch.cat([x, x.new_zeros(*batch, groups * k - m, n_in)], -2)
         x = x.reshape(-1, groups, k, n_in).permute(2, 0, 1, 3).reshape(k, -1, n_in)
-        y = self._rest(torch.baddbmm(self.biases[0], x, self.weights[0]))
+        y = self._rest(affine(x, self.weights[0], self.biases[0]))
         y = y.reshape(k, -1, groups, y.shape[-1]).permute(1, 2, 0, 3)
         y = y.reshape(*batch, groups * k, y.shape[-1])[..., :m, :]
         return y.squeeze(0) if unbatched else y

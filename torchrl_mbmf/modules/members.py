@@ -14,21 +14,77 @@ if TYPE_CHECKING:
     from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 
 
+def cyclic_member_index(batch_shape: Sequence[int], num_members: int) -> torch.Tensor:
+    """Member of every batch element when candidates are spread over the members.
+
+    Element ``i`` along the last batch dim uses member ``i mod K`` (an unbatched element
+    uses member 0).
+
+    Args:
+        batch_shape: the batch shape ``[*B]``.
+        num_members: ``K``.
+
+    Examples:
+        >>> from torchrl_mbmf.modules.members import cyclic_member_index
+        >>> cyclic_member_index((2, 4), 3)
+        tensor([[0, 1, 2, 0],
+                [0, 1, 2, 0]])
+    """
+    shape = tuple(int(b) for b in batch_shape)
+    if not shape:
+        return torch.zeros((), dtype=torch.long)
+    return (torch.arange(shape[-1]) % num_members).expand(shape)
+
+
+def check_member_index(
+    member_index: torch.Tensor, batch: torch.Size, num_members: int
+) -> torch.Tensor:
+    """Checks a member of every batch row: integers ``[*B]`` in ``[0, num_members)``.
+
+    Args:
+        member_index: the members.
+        batch: the batch shape ``[*B]``.
+        num_members: ``K``.
+
+    Returns:
+        ``member_index`` as a tensor.
+
+    Raises:
+        TypeError: for non-integer values.
+        ValueError: for a wrong shape or a value outside ``[0, K)``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.modules.members import check_member_index
+        >>> check_member_index(torch.tensor([0, 2]), torch.Size([2]), 3)
+        tensor([0, 2])
+    """
+    member_index = torch.as_tensor(member_index)
+    if member_index.dtype.is_floating_point or member_index.dtype == torch.bool:
+        raise TypeError(f"member_index must hold integers, got dtype {member_index.dtype}")
+    if member_index.shape != batch:
+        raise ValueError(
+            f"member_index has shape {tuple(member_index.shape)}, expected the batch shape "
+            f"{tuple(batch)}"
+        )
+    if member_index.numel() and (
+        int(member_index.min()) < 0 or int(member_index.max()) >= num_members
+    ):
+        raise ValueError(
+            f"member_index values must be in [0, {num_members - 1}] "
+            f"(num_members={num_members}), got min {int(member_index.min())} and max "
+            f"{int(member_index.max())}"
+        )
+    return member_index
+
+
 class EnsembleMembers:
     """The methods of :class:`~torchrl_mbmf.modules.DeltaDynamicsModel` that see its members.
 
-    A mixin of the one network: ``net`` maps member inputs ``[K, N, in]`` to member outputs
-    ``[K, N, out]`` (stacked layers for ``K >= 2``, the thesis' ``nn.Linear`` layers for
-    ``K = 1``, an ensemble of one). Every method works for every ``K``.
-
-    **Disagreement.** :meth:`disagreement` of ``(s, a)`` is the mean over the ``state_dim``
-    state dimensions of the standard deviation across the ``K`` members (population std,
-    ``correction=0``) of the predicted *normalised* delta, ``(s'_k - s - delta_loc) /
-    delta_scale``: ``mean_j std_k(delta_kj) / delta_scale_j``. It is 0 when all members agree
-    (always for ``K = 1``) and unitless, so one threshold fits every state dimension. The reward
-    is not part of it.
-
-    References: Kurutach et al., "Model-Ensemble Trust-Region Policy Optimization", ICLR 2018.
+    A mixin of the one network ``net`` (member inputs ``[K, N, in]`` to member outputs
+    ``[K, N, out]``): member outputs, the members' disagreement, per-member losses and
+    single members. Every method works for every ``K`` (``K = 1`` is an ensemble of one).
+    Design: ``docs/design/dynamics_model.md``.
 
     Examples:
         >>> import torch
@@ -123,36 +179,13 @@ class EnsembleMembers:
         return self.unscale(state, self.predict_scaled_members(state, action)[0])
 
     def check_member_index(self, member_index: torch.Tensor, batch: torch.Size) -> torch.Tensor:
-        """Checks a member of every batch row: integers ``[*B]`` in ``[0, K)``.
+        """Checks a member of every batch row (see :func:`check_member_index`).
 
         Args:
             member_index: the members.
             batch: the batch shape ``[*B]``.
-
-        Returns:
-            ``member_index`` as a tensor.
-
-        Raises:
-            TypeError: for non-integer values.
-            ValueError: for a wrong shape or a value outside ``[0, K)``.
         """
-        member_index = torch.as_tensor(member_index)
-        if member_index.dtype.is_floating_point or member_index.dtype == torch.bool:
-            raise TypeError(f"member_index must hold integers, got dtype {member_index.dtype}")
-        if member_index.shape != batch:
-            raise ValueError(
-                f"member_index has shape {tuple(member_index.shape)}, expected the batch shape "
-                f"{tuple(batch)}"
-            )
-        if member_index.numel() and (
-            int(member_index.min()) < 0 or int(member_index.max()) >= self.num_members
-        ):
-            raise ValueError(
-                f"member_index values must be in [0, {self.num_members - 1}] "
-                f"(num_members={self.num_members}), got min {int(member_index.min())} and max "
-                f"{int(member_index.max())}"
-            )
-        return member_index
+        return check_member_index(member_index, batch, self.num_members)
 
     def _select(self, members: torch.Tensor, member_index: torch.Tensor | None) -> torch.Tensor:
         """Mean over members (``None``) or member ``member_index[b]`` of every row ``b``."""
@@ -198,9 +231,8 @@ class EnsembleMembers:
     def disagreement(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Epistemic disagreement of the members at ``(state, action)``, ``[*B]``.
 
-        The mean over state dimensions of the standard deviation across members (population
-        std) of the predicted normalised delta ``(s'_k - s - delta_loc) / delta_scale``; see
-        the class docstring.
+        The mean over state dimensions of the members' population std of the predicted
+        normalised delta ``(s'_k - s - delta_loc) / delta_scale`` (Kurutach et al., 2018).
 
         Args:
             state: states ``[*B, state_dim]``.
@@ -208,37 +240,14 @@ class EnsembleMembers:
         """
         return self.disagreement_of_scaled(self.predict_scaled_members(state, action)[0])
 
-    @staticmethod
-    def cyclic_member_index(batch_shape: Sequence[int], num_members: int) -> torch.Tensor:
-        """Member of every batch element when candidates are spread over the members.
-
-        Element ``i`` along the last batch dim uses member ``i mod K`` (an unbatched element
-        uses member 0): the convention of the ensemble planner and of
-        :class:`~torchrl_mbmf.envs.EnsembleLearnedDynamicsEnv`.
-
-        Args:
-            batch_shape: the batch shape ``[*B]``.
-            num_members: ``K``.
-
-        Examples:
-            >>> from torchrl_mbmf.modules import EnsembleDeltaDynamicsModel
-            >>> EnsembleDeltaDynamicsModel.cyclic_member_index((2, 4), 3)
-            tensor([[0, 1, 2, 0],
-                    [0, 1, 2, 0]])
-        """
-        shape = tuple(int(b) for b in batch_shape)
-        if not shape:
-            return torch.zeros((), dtype=torch.long)
-        return (torch.arange(shape[-1]) % num_members).expand(shape)
+    cyclic_member_index = staticmethod(cyclic_member_index)
 
     # ------------------------------------------------------------------------ training
     def member_loss(self, inputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Training loss of every member ``[K]`` on pre-scaled data.
 
-        The mean over rows and outputs of the squared error (deterministic) or of the Gaussian
-        negative log-likelihood ``0.5 * (log_var + (y - mean)^2 / exp(log_var))`` (constant
-        dropped; ``probabilistic=True``). Summing it over members gives every member exactly
-        the gradient of its own loss.
+        The mean over rows and outputs of the squared error, or of the Gaussian negative
+        log-likelihood (constant dropped) when ``probabilistic=True``.
 
         Args:
             inputs: scaled inputs ``[N, in]`` (shared) or ``[K, N, in]`` (per member), as
@@ -266,8 +275,7 @@ class EnsembleMembers:
     def member(self, k: int) -> DeltaDynamicsModel:
         """Member ``k`` as a standalone :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`.
 
-        The copy has the member's weights (its mean head) and the shared scaling statistics;
-        it does not share memory with the ensemble.
+        A copy (no shared memory) with the member's mean head and the scaling statistics.
 
         Args:
             k: member index in ``[0, K)``.
@@ -301,4 +309,4 @@ class EnsembleMembers:
         return FusedEnsembleStep(self)
 
 
-__all__ = ["EnsembleMembers"]
+__all__ = ["EnsembleMembers", "check_member_index", "cyclic_member_index"]

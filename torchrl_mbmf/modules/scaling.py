@@ -18,7 +18,7 @@ class StandardScaling:
     :meth:`fit_normalizer`. :meth:`fold_scaling` folds them into a chain of linear layers: the
     one fold every fast path (fused steps, cached planner steps, fused ensemble members) uses.
     A mixin: the model defines ``state_dim``, ``action_dim``, ``action_low``, ``action_high``
-    and registers the buffers.
+    and registers the buffers with ``_register_scaling_buffers``.
 
     Examples:
         >>> import torch
@@ -43,6 +43,17 @@ class StandardScaling:
     reward_scale: torch.Tensor
     normalizer_fitted: torch.Tensor
 
+    def _register_scaling_buffers(self) -> None:
+        """Registers the statistics as buffers (identity scaling until fitted)."""
+        register = self.register_buffer  # type: ignore[attr-defined]  # an nn.Module's
+        dims = (("state", self.state_dim), ("action", self.action_dim), ("delta", self.state_dim))
+        for name, dim in dims:
+            register(f"{name}_loc", torch.zeros(dim))
+            register(f"{name}_scale", torch.ones(dim))
+        register("reward_loc", torch.zeros(1))
+        register("reward_scale", torch.ones(1))
+        register("normalizer_fitted", torch.zeros((), dtype=torch.bool))
+
     def _check(self, state: torch.Tensor, action: torch.Tensor) -> None:
         if state.shape[-1] != self.state_dim:
             raise ValueError(
@@ -57,6 +68,13 @@ class StandardScaling:
                 f"state batch {tuple(state.shape[:-1])} and action batch "
                 f"{tuple(action.shape[:-1])} differ"
             )
+        model = self.state_loc.dtype
+        for name, value in (("state", state), ("action", action)):
+            if torch.promote_types(value.dtype, model) != model:
+                raise ValueError(
+                    f"{name} is {value.dtype}, the model is {model}: convert the inputs (a "
+                    "float64 env: torchrl's DoubleToFloat transform) or the model"
+                )
 
     @torch.no_grad()
     def fit_normalizer(
@@ -78,6 +96,11 @@ class StandardScaling:
             ValueError: on wrong sizes, fewer than 2 transitions, or non-finite values.
         """
         self._check(state, action)
+        if next_state.shape != state.shape or reward.numel() != state[..., 0].numel():
+            raise ValueError(
+                f"next_state {tuple(next_state.shape)} must have the state's shape "
+                f"{tuple(state.shape)} and reward {tuple(reward.shape)} one value per transition"
+            )
         reward = reward.reshape(*state.shape[:-1], 1)
         state = state.reshape(-1, self.state_dim)
         if state.shape[0] < 2:

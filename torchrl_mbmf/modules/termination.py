@@ -150,28 +150,40 @@ class LearnedTermination(nn.Module):
             val_fraction: held-out share. Defaults to ``0.1``.
             seed: seed of the split and the minibatch order. Defaults to ``0``.
 
+        Each call continues from the head's current weights (a refit on more data warm-starts)
+        with a new Adam optimiser; the scaling statistics are those of the new training split.
+
         Returns:
             The held-out scores (:class:`TerminationFit`).
+
+        Raises:
+            ValueError: flags and states of different counts, fewer than two states, or a
+                ``val_fraction`` outside (0, 1).
         """
-        states = states.reshape(-1, self.state_dim).float()
-        target = terminated.reshape(-1).float()
+        device = self.state_loc.device
+        states = states.reshape(-1, self.state_dim).to(device, torch.float32)
+        target = terminated.reshape(-1).to(device, torch.float32)
         if target.numel() != states.shape[0]:
             raise ValueError(f"terminated has {target.numel()} flags for {states.shape[0]} states")
         if not 0.0 < val_fraction < 1.0:
             raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction!r}")
-        g = torch.Generator().manual_seed(seed)
-        order = torch.randperm(states.shape[0], generator=g)
+        g = torch.Generator().manual_seed(seed)  # on the CPU: the same split on any device
+        order = torch.randperm(states.shape[0], generator=g).to(device)
         n_val = max(1, round(val_fraction * states.shape[0]))
+        if states.shape[0] <= n_val:
+            raise ValueError(
+                f"fitting needs at least 2 states (one held out), got {states.shape[0]}"
+            )
         val, train = order[:n_val], order[n_val:]
         with torch.no_grad():
             self.state_loc.copy_(states[train].mean(0))
             self.state_scale.copy_(states[train].std(0).clamp_min(1e-6))
         share = float(target[train].mean())
-        pos_weight = torch.tensor((1 - share) / share if 0 < share < 1 else 1.0)
+        pos_weight = torch.tensor((1 - share) / share if 0 < share < 1 else 1.0, device=device)
         loss_fn = nn.BCEWithLogitsLoss(pos_weight=pos_weight)
         opt = torch.optim.Adam(self.net.parameters(), lr=lr)
         for _ in range(epochs):
-            perm = train[torch.randperm(train.numel(), generator=g)]
+            perm = train[torch.randperm(train.numel(), generator=g).to(device)]
             for i in range(0, perm.numel(), batch_size):
                 idx = perm[i : i + batch_size]
                 loss = loss_fn(self.logits(states[idx]), target[idx])

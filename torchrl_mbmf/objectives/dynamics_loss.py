@@ -81,9 +81,8 @@ class DynamicsLoss(LossModule):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Network inputs ``[..., state_dim + action_dim]`` and targets ``[..., state_dim + 1]``.
 
-        Both in the model's scaled units, with its current scaler. A fit whose scaler stays
-        fixed scales the data once with this and trains with :meth:`scaled_loss` on index
-        slices of the result, instead of rescaling every minibatch.
+        Both in the model's scaled units, with its current scaler (a fit scales its data
+        once with this and trains with :meth:`scaled_loss` on slices of the result).
 
         Args:
             state: states ``[..., state_dim]``.
@@ -111,10 +110,8 @@ class DynamicsLoss(LossModule):
     def scaled_loss(self, inputs: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Eq. 17 on pre-scaled data from :meth:`scaled_pairs` (the mean over all outputs).
 
-        For the thesis network (a :class:`~torch.nn.Sequential` of ``Linear`` and ``ReLU``
-        layers without hooks) the hidden ReLUs run in place on the fresh linear outputs,
-        which saves an allocation and a pass per layer and gives the same values and
-        gradients bit for bit; any other network is called as ``world_model.net(inputs)``.
+        The network runs through :func:`~torchrl_mbmf.modules.mlp.mlp_forward` (in-place
+        ReLUs for the thesis network, bit for bit the same values and gradients).
 
         Args:
             inputs: scaled network inputs.
@@ -140,16 +137,13 @@ class DynamicsLoss(LossModule):
         next_state: torch.Tensor,
         reward: torch.Tensor,
     ) -> torch.Tensor:
-        """Per-output squared errors ``[..., state_dim + 1]`` in scaled units.
+        """Per-output squared errors ``[..., state_dim + 1]`` in scaled units (delta, reward).
 
         Args:
             state: states ``[..., state_dim]``.
             action: actions ``[..., action_dim]``.
             next_state: real next states ``[..., state_dim]``.
             reward: real rewards ``[...]`` or ``[..., 1]``.
-
-        Returns:
-            The squared errors, scaled delta first and scaled reward last.
 
         Examples:
             >>> import torch
@@ -171,25 +165,19 @@ class DynamicsLoss(LossModule):
         next_states: torch.Tensor,
         rewards: torch.Tensor,
     ) -> torch.Tensor:
-        """Squared errors ``[..., k, state_dim + 1]`` of a ``k``-step open-loop rollout.
+        """Squared errors ``[..., k, state_dim + 1]`` (delta, reward) of a ``k``-step rollout.
 
-        The model starts at the real ``state`` and is fed the real ``actions``; from step 2 on
-        its input is its own previous prediction, and gradients flow back through the whole
-        rollout. At step ``t`` the predicted normalised delta is the one from the real
-        previous state ``s_{t-1}`` to the predicted ``ŝ_t``, compared with the real one:
-        ``((ŝ_t - s_{t-1} - delta_loc) - (s_t - s_{t-1} - delta_loc)) / delta_scale``, i.e. the
-        open-loop state error in delta-scaled units; the reward error is that of the reward
-        predicted from ``ŝ_{t-1}``, in reward-scaled units. Step 1 is exactly the one-step
-        error of :meth:`squared_errors` (up to float rounding).
+        From the real ``state``, fed the real ``actions``, the model steps on its own
+        predictions (gradients flow through the rollout). Step ``t``'s state error is
+        ``(ŝ_t - s_t) / delta_scale``, its reward error that of the reward predicted from
+        ``ŝ_{t-1}`` in scaled units; step 1 is :meth:`squared_errors`. Details:
+        ``docs/design/dynamics_model.md``.
 
         Args:
             state: real start states ``[..., state_dim]``.
             actions: real actions ``[..., k, action_dim]``.
             next_states: real next states ``[..., k, state_dim]``.
             rewards: real rewards ``[..., k]`` or ``[..., k, 1]``.
-
-        Returns:
-            The squared errors, scaled delta first and scaled reward last.
 
         Examples:
             >>> import torch
@@ -235,9 +223,6 @@ class DynamicsLoss(LossModule):
             next_states: real next states ``[..., k, state_dim]``.
             rewards: real rewards ``[..., k]`` or ``[..., k, 1]``.
 
-        Returns:
-            The scalar loss (differentiable through the rollout).
-
         Examples:
             >>> import torch
             >>> from torchrl_mbmf.modules import DeltaDynamicsModel
@@ -275,22 +260,11 @@ class DynamicsLoss(LossModule):
 class MultiStepDynamicsLoss(DynamicsLoss):
     """One-step loss plus a ``k``-step open-loop rollout loss on windows of real transitions.
 
-    The thesis trains the model on one-step targets only, while its planner rolls the model
-    10 steps open loop, so one-step errors compound unchecked. This loss adds the
-    multi-step term of :meth:`DynamicsLoss.multi_step_loss`: from the first real state of a
-    window of ``k`` consecutive transitions of one episode (see
-    :meth:`~torchrl_mbmf.data.TransitionDataset.windows`), the model is rolled open loop with
-    the window's real actions, and the mean over the ``k`` steps of the squared error of the
-    normalised deltas and rewards is added, weighted by ``multi_step_weight``, to the one-step
-    loss of all the window's transitions:
-    ``loss_dynamics = loss_one_step + multi_step_weight * loss_multi_step``. Gradients flow
-    through the rollout, in the spirit of Venkatraman et al., "Improving Multi-step
-    Prediction of Learned Time Series Models" (AAAI 2015) and PlaNet's overshooting (Hafner
-    et al., 2019).
-
-    The input is a ``[B, k]`` TensorDict of windows (time is the last batch dimension), such
-    as ``dataset.tensors()[dataset.windows(k)]``; its keys are those of
-    :class:`DynamicsLoss` (``loss.set_keys(...)``).
+    ``loss_dynamics = loss_one_step + multi_step_weight * loss_multi_step`` on a ``[B, k]``
+    TensorDict of windows of consecutive transitions (time last, such as
+    ``dataset.tensors()[dataset.windows(k)]``), the multi-step term being
+    :meth:`DynamicsLoss.multi_step_loss` from each window's first state. Why and references:
+    ``docs/design/dynamics_model.md``.
 
     Args:
         world_model: the model to train.

@@ -20,6 +20,8 @@ from torchrl.objectives.value.functional import (
     vec_generalized_advantage_estimate,
 )
 
+from torchrl_mbmf.modules.mlp import activate, affine
+
 __all__ = ["FusedPPOUpdate", "PPOAdvantage", "PPOGradients", "PlainPPONetworks", "ppo_update"]
 
 #: Loss entries averaged into the logged statistics.
@@ -192,14 +194,14 @@ class PlainPPONetworks:
 
     @staticmethod
     def mlp(layers: list[Any], x: Tensor) -> Tensor:
-        """Runs plain layers (``(fn, weight, bias)`` tuples or callables) on ``x``.
+        """Runs plain layers (``("linear", weight, bias)`` tuples or callables) on ``x``.
 
         Args:
             layers: the layers.
             x: the input.
         """
         for layer in layers:
-            x = layer[0](x, layer[1], layer[2]) if isinstance(layer, tuple) else layer(x)
+            x = affine(x, layer[1].t(), layer[2]) if isinstance(layer, tuple) else layer(x)
         return x
 
     def dist_params(self, obs: Tensor) -> tuple[Tensor, Tensor]:
@@ -846,14 +848,15 @@ def _sum_last(log_det: Tensor, like: Tensor) -> Tensor:
 
 
 def _plain_layers(net: nn.Module, owned: dict[int, Tensor]) -> list[Any]:
-    """``Linear`` layers as ``(F.linear, weight, bias)``, parameter-free layers as callables.
+    """``Linear`` layers as ``("linear", weight, bias)``, parameter-free layers as callables.
 
     ``owned`` maps each module parameter to the tensor the loss trains (they differ when the
     loss module was deep-copied); an opaque module with parameters is run as it is and must
     hold the trained tensors itself.
     """
     if isinstance(net, nn.Linear):
-        return [(F.linear, owned[id(net.weight)], owned[id(net.bias)])]
+        bias = None if net.bias is None else owned[id(net.bias)]
+        return [("linear", owned[id(net.weight)], bias)]
     if not isinstance(net, nn.Sequential):
         for param in net.parameters():
             if owned[id(param)] is not param:
@@ -912,12 +915,7 @@ def _standardize_minibatches(advantage: Tensor, size: int, normalize: bool) -> T
 def _spec_forward(spec: list[Any], x: Tensor) -> tuple[Tensor, list[Tensor]]:
     acts = [x]
     for layer in spec:
-        if layer == "relu":
-            x = torch.relu(x)
-        elif layer == "tanh":
-            x = torch.tanh(x)
-        else:
-            x = torch.addmm(layer[1], x, layer[2])
+        x = affine(x, layer[2], layer[1]) if isinstance(layer, tuple) else activate(x, layer)
         acts.append(x)
     return x, acts
 

@@ -12,6 +12,8 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import Tensor, nn
 from torchrl.objectives import SACLoss, SoftUpdate
 
+from torchrl_mbmf.modules.mlp import activate, affine
+
 __all__ = ["FusedSACUpdate", "sac_update_step"]
 
 _LOG2 = float(torch.log(torch.tensor(2.0)))
@@ -342,7 +344,7 @@ def _q_ensemble(params: list[Any], obs: Tensor, action: Tensor) -> Tensor:
             h = params[i](h)
             i += 1
         else:
-            h = torch.baddbmm(params[i + 1].unsqueeze(1), h, params[i].transpose(1, 2))
+            h = affine(h, params[i].transpose(1, 2), params[i + 1].unsqueeze(1))
             i += 2
     return h.squeeze(-1)
 
@@ -376,16 +378,12 @@ def _mlp_forward(
     outs: list[Tensor] = []
     pres: list[Tensor | None] = []
     for i, act in enumerate(acts):
-        z = torch.baddbmm(linear[2 * i + 1].unsqueeze(1), h, linear[2 * i].transpose(1, 2))
-        if act == "relu":
-            h, pre = z.relu_(), None
-        elif act == "tanh":
-            h, pre = z.tanh_(), None
-        else:
-            h, pre = act(z), z
+        z = affine(h, linear[2 * i].transpose(1, 2), linear[2 * i + 1].unsqueeze(1))
+        # relu and tanh in place on the fresh output (their backward reads the output only)
+        h = activate(z, act, inplace=True)
         outs.append(h)
-        pres.append(pre)
-    out = torch.baddbmm(linear[-1].unsqueeze(1), h, linear[-2].transpose(1, 2))
+        pres.append(None if act in ("relu", "tanh") else z)
+    out = affine(h, linear[-2].transpose(1, 2), linear[-1].unsqueeze(1))
     return out, outs, pres
 
 

@@ -37,7 +37,12 @@ from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.runs.export import save_policy
 from torchrl_mbmf.runs.layout import CHECKPOINTS
 from torchrl_mbmf.runs.logs import append_resume_log, cut_csv_logs
-from torchrl_mbmf.runs.resume import RESUME_SAFE_SETTINGS, describe_refused, resume_changes
+from torchrl_mbmf.runs.resume import (
+    RESUME_SAFE_SETTINGS,
+    check_resume_budget,
+    describe_refused,
+    resume_changes,
+)
 from torchrl_mbmf.runs.storage import (
     DatasetCheckpointAdapter,
     ReplayCheckpointAdapter,
@@ -183,6 +188,8 @@ class RunCheckpoint:
         if replay is not None:
             self.names.append("replay")
         self.rotation = CheckpointRotation(self.run_dir / CHECKPOINTS, keep_last=keep_last)
+        #: The resume-safe settings the last :meth:`resume` found changed (``{key: (old, new)}``).
+        self.allowed_changes: dict[str, tuple[Any, Any]] = {}
 
     def save(self, actor: torch.nn.Module) -> None:
         """Atomically writes a checkpoint at the current step (once per step) and the policy."""
@@ -216,6 +223,8 @@ class RunCheckpoint:
         # Compare the config first (the progress entry alone), then restore everything.
         self.checkpoint.load(latest, components=["progress"])
         allowed = self._check_compatible(latest, expected, config)
+        check_resume_budget(self.progress["real_steps"], config, latest)
+        self.allowed_changes = allowed
         components = self.components()
         stored = set(self.checkpoint.manifest(latest)["components"])
         if missing := [name for name in components if name not in stored]:

@@ -1,22 +1,9 @@
 """A run folder belongs to its run: what a new run may find there, and the lock while it runs.
 
-Before a run writes anything, :func:`claim_run_folder` takes the folder's advisory lock and
-reads what the folder holds:
-
-* nothing, or only Hydra's own files: a fresh run;
-* checkpoints of an unfinished run: a resume (the checkpoint's own check refuses changed
-  settings);
-* a run killed before its first checkpoint (its config and logs, no checkpoint): started again
-  over its rows, if its config is this run's (up to the resume-safe settings);
-* a finished run (``summary.json``) of this config: nothing to train (:class:`FinishedRunError`),
-  unless ``total_steps`` is raised past its steps (it continues from its latest checkpoint) or
-  ``restart=True``;
-* files that are not a run's, or a run of another config: refused.
-
-``restart=True`` moves the old run's files into ``replaced-<UTC time>/`` inside the folder;
-nothing is ever deleted. The lock (``fcntl.flock`` on ``run.lock``, holding the owner's pid)
-refuses a second process on the same folder, naming the holder; the kernel releases it when
-its process dies, so a stale lock is taken over.
+:func:`claim_run_folder` takes the folder's lock (:class:`RunFolderLock`) before a run writes
+anything and decides from what the folder holds: a fresh run, a resume, a restart over a run
+killed before its first checkpoint, nothing to do (a finished run), or a refusal. ``restart``
+moves an old run aside; nothing is ever deleted. The cases: ``docs/design/run_folder.md``.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """A run's real-transition dataset kept as the actions that made it, rebuilt by replaying them.
 
-A planning-phase checkpoint holds every real transition so far (about 181 bytes each, tens of
-MB). The real env is deterministic given its seeds, so the transitions follow from far less:
-the actions (24 bytes a step for HalfCheetah), the rows where the env was seeded and reset, and
-the trajectory ids. :class:`DatasetReplay` is that record; :meth:`DatasetReplay.rebuild` steps
-the env through the actions again and accepts the result only if it matches the dataset's
-checksum bit for bit. :func:`compact_checkpoint` and :func:`expand_checkpoint` swap a
-checkpoint's dataset for its replay and back, so that a checkpoint small enough to commit can
-continue a run on another machine.
+:class:`DatasetReplay` records the actions, seeded resets and trajectory ids;
+:meth:`DatasetReplay.rebuild` replays them and accepts the result only if it matches the
+dataset's checksum bit for bit. :func:`compact_checkpoint` and :func:`expand_checkpoint` swap a
+checkpoint's dataset for its replay and back (a checkpoint small enough to commit). Why this
+works: ``docs/design/run_folder.md``.
 """
 
 from __future__ import annotations
@@ -29,7 +26,8 @@ from torchrl.envs import EnvBase
 
 from torchrl_mbmf.collectors import LeanCollector
 from torchrl_mbmf.data import CorruptDatasetError, TransitionDataset
-from torchrl_mbmf.data.transitions import TRAJ_KEY, episode_ends
+from torchrl_mbmf.data.dataset_files import TERMINATED_KEY
+from torchrl_mbmf.data.episodes import TRAJ_KEY, episode_ends
 from torchrl_mbmf.runs.storage import DatasetCheckpointAdapter, verify_checkpoint
 
 __all__ = [
@@ -107,18 +105,19 @@ def _episode_starts(data: TensorDictBase, state_key: Any) -> tuple[list[int], se
     return [0, *starts.tolist()], {0, *forced.tolist()}
 
 
-def _stored(batch: TensorDictBase, state_key: Any, reward_key: Any) -> TensorDictBase:
+def _stored(
+    batch: TensorDictBase, state_key: Any, reward_key: Any, terminated: bool
+) -> TensorDictBase:
     """The dataset's fields of a collector batch (without the trajectory ids)."""
+    nxt = {
+        state_key: batch.get(("next", state_key)),
+        reward_key: batch.get(("next", reward_key)),
+        "done": episode_ends(batch).unsqueeze(-1),
+    }
+    if terminated:  # a dataset saved before the flags were stored has none to check
+        nxt["terminated"] = batch.get(TERMINATED_KEY).reshape(*batch.batch_size, 1).bool()
     return TensorDict(
-        {
-            state_key: batch.get(state_key),
-            "action": batch.get("action"),
-            "next": {
-                state_key: batch.get(("next", state_key)),
-                reward_key: batch.get(("next", reward_key)),
-                "done": episode_ends(batch).unsqueeze(-1),
-            },
-        },
+        {state_key: batch.get(state_key), "action": batch.get("action"), "next": nxt},
         batch_size=batch.batch_size,
     )
 
@@ -130,15 +129,9 @@ def _sha256(array: np.ndarray) -> str:
 class DatasetReplay:
     """The record that rebuilds a run's :class:`~torchrl_mbmf.data.TransitionDataset` in its env.
 
-    The :class:`~torchrl_mbmf.trainers.Trainer` collects with one real env that it seeds
-    with ``seed + real steps`` at every collector start (after the random data, after each
-    checkpoint); within a collector the env resets itself after every episode end, from its
-    own random stream. So the transitions follow from the actions taken, the rows where the
-    env was seeded (and with which seed), and the dataset's record (provenance, trajectory
-    ids, checksum). :meth:`from_dataset` finds the seeded rows by replaying the actions and
-    checks every stored value of every transition on the way; :meth:`rebuild` replays them
-    again (on this or another machine) and returns the dataset only if it matches the
-    record's checksum bit for bit.
+    :meth:`from_dataset` finds the seeded rows by replaying the actions (checking every stored
+    value on the way); :meth:`rebuild` replays them again, on this or another machine, and
+    returns the dataset only if it matches the record's checksum bit for bit.
 
     Args:
         actions: the ``[N, *action_shape]`` float32 actions, row by row.
@@ -233,7 +226,7 @@ class DatasetReplay:
                     replayer.reseed(seed + a)
                     resets.append((a, seed + a))
                     batch = replayer.steps(a, b)
-                got = _stored(batch, state_key, reward_key)
+                got = _stored(batch, state_key, reward_key, dataset.stores_terminated)
                 for key in got.keys(True, True):
                     if not torch.equal(got.get(key), data.get(key)[a:b]):
                         rows = (got.get(key) != data.get(key)[a:b]).reshape(b - a, -1).any(-1)
@@ -279,6 +272,7 @@ class DatasetReplay:
         n = len(self)
         keys = [tuple(k) if isinstance(k, list) else k for k in self.record["keys"]]
         state_key, reward_key = keys[0], keys[3][1]
+        terminated = TERMINATED_KEY in keys
         parts: list[TensorDictBase] = []
         if n:
             replayer = _Replayer(env, self.actions)
@@ -288,7 +282,7 @@ class DatasetReplay:
                     replayer.reseed(seed)
                     for start in range(a, b, chunk):
                         batch = replayer.steps(start, min(b, start + chunk))
-                        parts.append(_stored(batch, state_key, reward_key))
+                        parts.append(_stored(batch, state_key, reward_key, terminated))
             finally:
                 replayer.close()
         stored = None

@@ -1,13 +1,9 @@
 """What a resume does to the run folder's logs: cut them back to the checkpoint, and say so.
 
-A run killed after its checkpoint at step ``S`` has logged rows past ``S`` (and a run killed
-before its first checkpoint has logged rows it will log again). The resumed run logs those
-steps again, so each CSV series is cut back to exactly the rows the checkpoint's
-:class:`~torchrl.record.loggers.CSVLogger` state holds (the rows logged *before* the save,
-which is not the same as the rows with ``step <= S``: a row logged at ``S`` after the save, such
-as the switch to model-free training, is logged again after the resume). Without a checkpoint
-every series is removed. The killed-and-resumed run's CSV files then equal an uninterrupted
-run's, row for row.
+Each CSV series is cut back to exactly the rows the checkpoint's
+:class:`~torchrl.record.loggers.CSVLogger` state holds (all removed without a checkpoint), so a
+killed-and-resumed run's CSV files equal an uninterrupted run's, row for row. Why the rows and
+not the steps: ``docs/design/run_folder.md``.
 """
 
 from __future__ import annotations

@@ -10,17 +10,19 @@ applies. :data:`RESUME_SAFE_SETTINGS` are the settings a resumed run may change,
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from omegaconf import OmegaConf
 
+from torchrl_mbmf.checks import ConfigError
 from torchrl_mbmf.methods import MODEL_BASED, PPO_METHODS
 
 __all__ = [
     "DEFAULT_TARGETS",
     "IMPLIED_DEFAULTS",
     "RESUME_SAFE_SETTINGS",
+    "check_resume_budget",
     "describe_refused",
     "fingerprint",
     "flatten_settings",
@@ -89,7 +91,7 @@ def resume_changes(
     allowed: dict[str, tuple[Any, Any]] = {}
     for key in sorted(set(saved) | set(now)):
         old, new = saved.get(key, _implied(key, missing)), now.get(key, _implied(key, missing))
-        if _same(old, new):
+        if _same(old, new) or (key in SAME_WHEN and SAME_WHEN[key](old) == SAME_WHEN[key](new)):
             continue
         safe = any(
             key == s or (s.endswith(".") and key.startswith(s)) for s in RESUME_SAFE_SETTINGS
@@ -98,8 +100,63 @@ def resume_changes(
     return refused, allowed
 
 
+def _device(value: Any) -> Any:
+    """The device a ``device`` setting means on this machine (``auto`` and ``cuda`` resolved).
+
+    The same rule as :func:`torchrl_mbmf.trainers.device.resolve_device`, without its checks
+    (a device this machine lacks is refused when the run builds).
+    """
+    if value == "auto":
+        import torch
+
+        return "cuda:0" if torch.cuda.is_available() else "cpu"
+    return "cuda:0" if value == "cuda" else value
+
+
+#: Settings whose values are compared by what they mean here: ``device=auto`` resolving to the
+#: device a run was written with is no change.
+SAME_WHEN: dict[str, Callable[[Any], Any]] = {"device": _device}
+
+
+def check_resume_budget(real_steps: int, config: Mapping[str, Any], checkpoint: Any) -> None:
+    """Refuses a resume whose ``total_steps`` is below the steps its checkpoint has taken.
+
+    A raised ``total_steps`` continues the run; one equal to the checkpoint's steps ends it at
+    once (its summary is written); a lower one would end with more steps than asked, so it is
+    refused.
+
+    Args:
+        real_steps: the checkpoint's real-step count.
+        config: the resuming run's flattened config (``total_steps``).
+        checkpoint: the checkpoint's folder (named in the error).
+
+    Raises:
+        ConfigError: naming ``total_steps``, the checkpoint and its steps.
+
+    Examples:
+        >>> from torchrl_mbmf.runs.resume import check_resume_budget
+        >>> check_resume_budget(480, {"total_steps": 960}, "ckpt")
+        >>> try:
+        ...     check_resume_budget(480, {"total_steps": 320}, "ckpt")
+        ... except ValueError as err:
+        ...     print(str(err).split(";")[0])
+        total_steps=320 is below the 480 real steps checkpoint ckpt has already taken
+    """
+    total = config.get("total_steps")
+    if isinstance(total, int) and not isinstance(total, bool) and total < int(real_steps):
+        raise ConfigError(
+            f"total_steps={total} is below the {int(real_steps)} real steps checkpoint "
+            f"{checkpoint} has already taken; resume with total_steps >= {int(real_steps)} "
+            "(equal: the run ends at once) or use another run_dir"
+        )
+
+
 #: Settings added after runs were written, with the value a config without them means.
-IMPLIED_DEFAULTS: dict[str, Any] = {"restart": False, "sac.loss_function": "smooth_l1"}
+IMPLIED_DEFAULTS: dict[str, Any] = {
+    "restart": False,
+    "world_model.learn_termination": False,
+    "sac.loss_function": "smooth_l1",
+}
 
 
 def flatten_settings(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -1,17 +1,8 @@
 """How a checkpoint folder is written and checked: integrity records and pickle-free adapters.
 
-What a checkpoint holds is :class:`~torchrl_mbmf.runs.checkpoint.RunCheckpoint`. Every checkpoint
-folder is written by :class:`SealedWriter` (a ``torchrl.checkpoint.Checkpoint``
-whose save adds an integrity record, ``integrity.json``, holding the size and SHA-256 of every
-file, written last inside the staging folder before the atomic rename) and restored only after
-:func:`verify_checkpoint` has checked that record. :func:`latest_intact_checkpoint` picks the
-newest checkpoint that passes, falling back past damaged ones with a warning.
-
-No component is restored through :mod:`pickle`: module, optimiser, RNG and logger state go
-through :class:`TensorStateAdapter` (JSON schema plus raw tensor files of known dtype and
-shape), the progress record through torchrl's JSON adapter, the transition dataset and the
-replay buffer through :class:`DatasetCheckpointAdapter` and :class:`ReplayCheckpointAdapter`,
-which read tensors with :func:`~torchrl_mbmf.data.memmap.load_tensor_folder`.
+:class:`SealedWriter` writes a checkpoint with an integrity record, :func:`verify_checkpoint`
+checks it before any restore, :func:`latest_intact_checkpoint` picks the newest intact one; the
+adapters restore every component without pickle. Why: ``docs/design/run_folder.md``.
 """
 
 from __future__ import annotations
@@ -198,12 +189,9 @@ def verify_checkpoint(path: str | os.PathLike) -> None:
 class SealedWriter(Checkpoint):
     """A ``torchrl.checkpoint.Checkpoint`` whose saves carry an integrity record.
 
-    ``save`` lets torchrl write the checkpoint into a hidden staging folder, adds
-    ``integrity.json`` (size and SHA-256 of every file, manifest included) as the last file
-    and then renames the folder into place, so a checkpoint under its final name is always
-    complete and verifiable (see :func:`verify_checkpoint`). An interrupted save leaves only
-    hidden ``.<name>.*`` folders, which :func:`latest_intact_checkpoint` removes. Only the
-    ``"directory"`` format is supported. Loading is torchrl's; verify first.
+    ``save`` writes into a hidden staging folder, adds ``integrity.json`` (size and SHA-256 of
+    every file) last and renames the folder into place. Only the ``"directory"`` format is
+    supported. Loading is torchrl's; verify first (:func:`verify_checkpoint`).
 
     Keyword Args:
         **kwargs: as :class:`torchrl.checkpoint.Checkpoint` (components, ``strict``, ...).
@@ -302,11 +290,9 @@ def _remove_staging_leftovers(directory: Path, prefix: str) -> None:
 def latest_intact_checkpoint(rotation: CheckpointRotation) -> Path | None:
     """The newest checkpoint of a rotation folder that passes :func:`verify_checkpoint`.
 
-    Hidden staging leftovers of interrupted saves (``.<prefix>-<step>.*``: torchrl's stage,
-    backup and delete folders, this module's verify folders) are removed first; they
-    are never loaded. A damaged checkpoint newer than the one returned is moved into a
-    ``damaged`` subfolder (out of the rotation, so a resumed run writes a fresh one at its
-    step) with a :class:`DamagedCheckpointWarning` naming the damaged file.
+    Staging leftovers of interrupted saves are removed first. A damaged checkpoint newer than
+    the one returned is moved into a ``damaged`` subfolder with a
+    :class:`DamagedCheckpointWarning` naming the damaged file.
 
     Args:
         rotation: the run's checkpoint rotation (folder and name prefix).

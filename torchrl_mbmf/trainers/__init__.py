@@ -19,6 +19,7 @@ from torchrl_mbmf.trainers.config import METHODS, ConfigError, validate_train_co
 from torchrl_mbmf.trainers.loop import Trainer, seed_everything
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule
+from torchrl_mbmf.trainers.settings import TrainConfig
 
 __all__ = [
     "METHODS",
@@ -30,6 +31,7 @@ __all__ = [
     "Phase",
     "PhaseSchedule",
     "SACAgent",
+    "TrainConfig",
     "Trainer",
     "TrainingDivergedError",
     "WorldModelPart",

@@ -28,6 +28,7 @@ from torchrl_mbmf.modules.planners import MinQValue
 from torchrl_mbmf.objectives.fused_ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
 from torchrl_mbmf.trainers.components import instantiate_group
+from torchrl_mbmf.trainers.settings import GroupSettings
 
 __all__ = [
     "DISTRIBUTIONS",
@@ -402,16 +403,24 @@ class SACAgent:
         return MinQValue(self.actor, self.critic, self.loss.qvalue_network_params)
 
 
-def make_agent(method_family: str, env: EnvBase, cfg: DictConfig, device: torch.device) -> Agent:
-    """The agent of ``method_family`` (``"ppo"`` or ``"sac"``) built from ``cfg[method_family]``.
+def make_agent(
+    method_family: str,
+    env: EnvBase,
+    cfg: DictConfig | GroupSettings,
+    device: torch.device,
+) -> Agent:
+    """The agent of ``method_family`` (``"ppo"`` or ``"sac"``) built from its group's settings.
 
-    The group is built by :func:`~torchrl_mbmf.trainers.components.instantiate_group`: its
-    ``_target_`` (:class:`PPOAgent` or :class:`SACAgent` without one) with the group's keys.
+    The group's builder is its ``_target_`` (:class:`PPOAgent` or :class:`SACAgent` without
+    one), called with the group's keys.
 
     Args:
         method_family: ``"ppo"`` or ``"sac"``.
         env: the training env.
-        cfg: the whole training config (only its ``method_family`` group is read).
+        cfg: the group's parsed settings
+            (:class:`~torchrl_mbmf.trainers.settings.PPOSettings` /
+            :class:`~torchrl_mbmf.trainers.settings.SACSettings`), or a training config whose
+            ``method_family`` group is read.
         device: device of the networks and updates.
 
     Raises:
@@ -427,7 +436,10 @@ def make_agent(method_family: str, env: EnvBase, cfg: DictConfig, device: torch.
     """
     if method_family not in ("ppo", "sac"):
         raise ValueError(f"method_family={method_family!r}; expected one of ['ppo', 'sac']")
-    agent = instantiate_group(cfg, method_family, env=env, device=device)
+    if isinstance(cfg, GroupSettings):
+        agent = cfg.build(env=env, device=device)
+    else:
+        agent = instantiate_group(cfg, method_family, env=env, device=device)
     if not isinstance(agent, Agent):
         raise TypeError(
             f"{method_family}._target_ built a {type(agent).__name__}, which is no Agent "

@@ -33,6 +33,7 @@ from torchrl_mbmf.trainers.hooks import (
     StepTiming,
 )
 from torchrl_mbmf.trainers.progress import RunPlan
+from torchrl_mbmf.trainers.settings import EnvSettings, RewardSettings, TrainConfig
 
 __all__ = [
     "LOGGERS",
@@ -40,6 +41,7 @@ __all__ = [
     "make_collector",
     "make_hooks",
     "make_logger",
+    "make_settings_env",
     "make_train_env",
     "seed_everything",
 ]
@@ -78,13 +80,36 @@ def make_train_env(cfg: DictConfig, seed: int, num_envs: int | None = None) -> E
         >>> make_train_env(cfg, seed=0).batch_size
         torch.Size([2])
     """
+    env = EnvSettings(str(cfg.env.id), int(cfg.env.num_envs), str(cfg.env.device))
+    return make_settings_env(
+        env, RewardSettings(cfg.reward.name, cfg.reward.kwargs or {}), seed, num_envs
+    )
+
+
+def make_settings_env(
+    env: EnvSettings, reward: RewardSettings, seed: int, num_envs: int | None = None
+) -> EnvBase:
+    """The env of parsed ``env`` and ``reward`` settings.
+
+    Args:
+        env: the ``env`` group's settings.
+        reward: the ``reward`` group's settings.
+        seed: the env seed.
+        num_envs: batched envs; ``env.num_envs`` by default.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.settings import EnvSettings, RewardSettings
+        >>> env = EnvSettings("Pendulum-v1", 2, "cpu")
+        >>> make_settings_env(env, RewardSettings("default"), seed=0).batch_size
+        torch.Size([2])
+    """
     return make_env(
-        cfg.env.id,
-        reward=cfg.reward.name,
-        reward_kwargs=dict(cfg.reward.kwargs or {}),
-        num_envs=int(cfg.env.num_envs if num_envs is None else num_envs),
+        env.id,
+        reward=reward.name,
+        reward_kwargs=dict(reward.kwargs or {}),
+        num_envs=int(env.num_envs if num_envs is None else num_envs),
         seed=seed,
-        device=cfg.env.device,
+        device=env.device,
     )
 
 
@@ -200,33 +225,37 @@ def evaluate_policy(
     return mean
 
 
-def make_hooks(cfg: DictConfig, model_based: bool) -> tuple[Hooks, dict[str, HookFn]]:
-    """The loop's hooks of ``cfg``, and the ones the loop also calls by name.
+def make_hooks(config: TrainConfig, model_based: bool) -> tuple[Hooks, dict[str, HookFn]]:
+    """The loop's hooks of a parsed config, and the ones the loop also calls by name.
 
     Args:
-        cfg: the training config.
+        config: the parsed training config.
         model_based: whether the run has a world model (data and refit hooks).
 
     Returns:
-        ``(hooks, named)`` with ``named`` holding ``bar``, ``timing`` and ``checkpoints``.
+        ``(hooks, named)`` with ``named`` holding ``bar``, ``timing``, ``checkpoints`` and
+        ``evaluation``.
 
     Examples:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"total_steps": 10, "method": "ppo", "progress": False,
-        ...     "eval_every": 5, "eval_episodes": 1, "checkpoint": {"every_steps": 5}})
-        >>> hooks, named = make_hooks(cfg, model_based=False)
+        >>> from hydra import compose, initialize_config_dir
+        >>> from pathlib import Path
+        >>> from torchrl_mbmf.trainers.settings import TrainConfig
+        >>> with initialize_config_dir(str(Path("configs").resolve()), version_base="1.3"):
+        ...     cfg = compose("train", overrides=["method=ppo", "env=pendulum", "progress=false"])
+        >>> hooks, named = make_hooks(TrainConfig.from_config(cfg), model_based=False)
         >>> [type(h).__name__ for h in hooks.stages["updated"]]
         ['StepTiming', 'Evaluation']
     """
     named = {
         "bar": ProgressBar(
-            int(cfg.total_steps),
-            cfg.method,
-            bool(cfg.progress),
-            RunPlan.from_config(cfg) if cfg.progress else None,
+            config.total_steps,
+            config.method,
+            config.progress,
+            RunPlan.from_config(config) if config.progress else None,
         ),
         "timing": StepTiming(),
-        "checkpoints": SaveCheckpoint(int(cfg.checkpoint.every_steps)),
+        "checkpoints": SaveCheckpoint(config.checkpoint.every_steps),
+        "evaluation": Evaluation(config.eval_every, config.eval_episodes),
     }
     hooks = Hooks()
     hooks.register("collected", named["bar"])
@@ -235,6 +264,6 @@ def make_hooks(cfg: DictConfig, model_based: bool) -> tuple[Hooks, dict[str, Hoo
         hooks.register("collected", ModelData())
         hooks.register("updated", ModelRefit())
     hooks.register("updated", named["timing"])
-    hooks.register("updated", Evaluation(int(cfg.eval_every), int(cfg.eval_episodes)))
+    hooks.register("updated", named["evaluation"])
     hooks.register("round_end", named["checkpoints"])
     return hooks, named

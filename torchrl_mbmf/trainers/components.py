@@ -45,6 +45,7 @@ __all__ = [
     "group_keys",
     "group_target",
     "instantiate_group",
+    "qualified_error",
     "settings",
 ]
 
@@ -87,6 +88,11 @@ def group_keys(target: Callable[..., Any]) -> tuple[tuple[str, ...], tuple[str, 
         tuple(p.name for p in keys),
         tuple(p.name for p in keys if p.default is inspect.Parameter.empty),
     )
+
+
+def _other_groups(group: str) -> tuple[str, ...]:
+    """The key prefixes of the groups other than ``group`` (``"planner."``, ...)."""
+    return tuple(f"{g}." for g in DEFAULT_TARGETS if g != group)
 
 
 def _qualified(group: str, keys: Sequence[str], message: str) -> str:
@@ -136,5 +142,29 @@ def instantiate_group(cfg: Any, group: str, **runtime: Any) -> Any:
     except InstantiationException as err:
         cause = err.__cause__
         if isinstance(cause, TypeError | ValueError):
-            raise ConfigError(_qualified(group, keys, str(cause))) from cause
+            error = qualified_error(group, keys, cause)
+            raise error from (None if error is cause else cause)
         raise
+
+
+def qualified_error(group: str, keys: Sequence[str], err: TypeError | ValueError) -> ConfigError:
+    """The :class:`ConfigError` of a group builder's error, naming the config key.
+
+    An error that already names another group's key (the planner built inside the world-model
+    part) is kept as it is.
+
+    Args:
+        group: the group whose builder raised.
+        keys: the builder's keys.
+        err: the builder's error.
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.components import qualified_error
+        >>> str(qualified_error("planner", ["horizon"], ValueError("horizon must be >= 1")))
+        'planner.horizon must be >= 1'
+        >>> str(qualified_error("world_model", ["lr"], ConfigError("planner.horizon bad")))
+        'planner.horizon bad'
+    """
+    if isinstance(err, ConfigError) and str(err).startswith(_other_groups(group)):
+        return err
+    return ConfigError(_qualified(group, keys, str(err)))

@@ -17,7 +17,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_mbmf.checks import ConfigError, Setting
+from torchrl_mbmf.checks import ConfigError, Setting, check_number
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
 from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
 from torchrl_mbmf.runs.resume import (
@@ -321,8 +321,34 @@ def _check_sac_sizes(sac: Any, frames: int | None, total: int) -> None:
         )
 
 
+#: The planner's refinement keys, checked even without a refinement (a NaN there is no
+#: setting): ``(key, integer, minimum, upper bound excluded)``.
+_REFINEMENT_KEYS: tuple[tuple[str, bool, float, float | None], ...] = (
+    ("iterations", True, 1, None),
+    ("num_elites", True, 1, None),
+    ("policy_fraction", False, 0, 1.0),
+    ("temperature", False, 0, None),
+    ("min_std", False, 0, None),
+)
+
+
+def _check_refinement_keys(planner: Any) -> None:
+    for key, integer, minimum, below in _REFINEMENT_KEYS:
+        if key not in planner:
+            continue
+        value = planner[key]
+        try:
+            value = check_number(value, f"planner.{key}", minimum=minimum, integer=integer)
+        except ValueError as err:
+            raise ConfigError(str(err)) from err
+        if (below is not None and value >= below) or (key == "temperature" and value == 0):
+            bound = f"in [{minimum}, {below})" if below is not None else "> 0"
+            raise ConfigError(f"planner.{key} must be {bound}, got {value}")
+
+
 def _check_planner_variants(cfg: Any, method: str) -> None:
     planner = cfg["planner"]
+    _check_refinement_keys(planner)
     refinement = planner.get("refinement")
     if refinement is None:
         return

@@ -280,6 +280,37 @@ class Evaluation(Hook):
                 trainer.log({"eval/return": trainer.evaluate()})
             progress.next_eval += self.every
 
+    def next_eval_at(self, real_steps: int, random_steps: int, frames_per_batch: int) -> int:
+        """The ``next_eval`` a run with this schedule from its start holds at ``real_steps``.
+
+        The hook runs after every learning batch: at ``random_steps + k * frames_per_batch``
+        real steps (``k >= 1``; the random-data steps of a model-based run are not learnt
+        from). A resumed run whose ``eval_every`` changed takes this value, so from the
+        resume point on it evaluates at exactly the steps a fresh run with the new schedule
+        does (with batches no longer than ``every``: at the first batch that reaches each
+        multiple of ``every``).
+
+        Args:
+            real_steps: the real steps so far (a checkpoint's).
+            random_steps: the random-data steps among them.
+            frames_per_batch: real steps per learning batch.
+
+        Examples:
+            >>> from torchrl_mbmf.trainers.hooks import Evaluation
+            >>> Evaluation(every=320, episodes=1).next_eval_at(480, 0, 160)
+            640
+        """
+        if frames_per_batch < 1 or not 0 <= random_steps <= real_steps:
+            raise ValueError(
+                "next_eval_at: needs frames_per_batch >= 1 and 0 <= random_steps <= real_steps, "
+                f"got {frames_per_batch}, {random_steps}, {real_steps}"
+            )
+        next_eval = 0
+        for step in range(random_steps + frames_per_batch, real_steps + 1, frames_per_batch):
+            if step >= next_eval:
+                next_eval += self.every
+        return next_eval
+
 
 class SaveCheckpoint(Hook):
     """Writes a checkpoint when one is due, between two collectors (``round_end``).

@@ -8,7 +8,6 @@ says which policy acts, the agent learns from every batch, and the hooks
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import time
 from collections.abc import Mapping, Sequence
@@ -33,14 +32,14 @@ from torchrl_mbmf.trainers.build import (
     evaluate_policy,
     make_collector,
     make_hooks,
-    make_train_env,
+    make_settings_env,
     seed_everything,
 )
-from torchrl_mbmf.trainers.components import instantiate_group
-from torchrl_mbmf.trainers.config import TrainSettings, flatten_config
+from torchrl_mbmf.trainers.config import TrainSettings
 from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
+from torchrl_mbmf.trainers.settings import TrainConfig
 from torchrl_mbmf.trainers.signals import StopRequest
 
 __all__ = [
@@ -85,8 +84,10 @@ class Trainer:
     TIME_KEYS: tuple[str, ...] = ("env_s", "act_s", "update_s", "refit_s")
 
     def __init__(self, cfg: DictConfig, run_dir: Path) -> None:
-        # the config is read here only: the loop reads the parsed settings and the parts
-        self.settings = settings = TrainSettings.from_config(cfg)
+        # The config is validated and parsed once; the parts are built from the typed settings
+        # and nothing reads the raw config after this constructor.
+        self.config = config = TrainConfig.from_config(cfg)
+        self.settings = settings = config.settings
         self.run_dir = Path(run_dir)
         seed_everything(settings.seed)
         self.times = dict.fromkeys(self.TIME_KEYS, 0.0)
@@ -94,40 +95,38 @@ class Trainer:
             torch.set_num_threads(settings.threads)
         # networks, world model, planner and updates; the MuJoCo envs stay on the CPU
         self.device = resolve_device(settings.device)
-        self.env = make_train_env(cfg, settings.seed)
-        self.eval_env = make_train_env(cfg, settings.seed + 1000, num_envs=1)
-        # The config groups' components (components.instantiate_group): their constructors
-        # check every argument, so a bad value stops the run here, before any work.
-        self.agent: Agent = make_agent(settings.family, self.env, cfg, self.device)
+        self.env = make_settings_env(config.env, config.reward, settings.seed)
+        self.eval_env = make_settings_env(
+            config.env, config.reward, settings.seed + 1000, num_envs=1
+        )
+        # The config groups' components (GroupSettings.build): their constructors check every
+        # argument, so a bad value stops the run here, before any work.
+        self.agent: Agent = make_agent(settings.family, self.env, config.agent, self.device)
         self.world: WorldModelPart | None = None
         if settings.model_based:
-            self.world = instantiate_group(
-                cfg,
-                "world_model",
+            self.world = config.world_model.build(
                 env=self.env,
                 agent=self.agent,
                 device=self.device,
-                planner=functools.partial(instantiate_group, cfg, "planner"),
+                planner=config.planner.build,
                 seed=settings.seed,
                 guided=settings.method != "mpc",
             )
-        self.schedule = PhaseSchedule.from_config(cfg)
+        self.schedule = PhaseSchedule.from_config(config)
         self.progress = Progress(
             phase=self.schedule.first_phase().value,
             next_checkpoint=settings.checkpoint_every,
             fingerprint=fingerprint(cfg),
             # the whole resolved config: a resume refuses any change that affects training
-            config=flatten_config(cfg),
+            config=dict(config.record),
         )
         self.frames_per_batch = settings.frames_per_batch
         self.total_steps = settings.total_steps
         # The folder is this run's (locked; a finished or foreign run refused) before anything
         # is written to it; a refused setting above has written nothing.
-        self.lock = claim_run_folder(
-            self.run_dir, flatten_config(cfg), restart=bool(cfg.get("restart", False))
-        )
-        self.logger = instantiate_group(cfg, "logger", run_dir=self.run_dir)
-        self.hooks, named = make_hooks(cfg, self.schedule.model_based)
+        self.lock = claim_run_folder(self.run_dir, config.record, restart=config.restart)
+        self.logger = config.logger.build(run_dir=self.run_dir)
+        self.hooks, named = make_hooks(config, self.schedule.model_based)
         self.bar, self.timing = named["bar"], named["timing"]
         self.checkpoints = named["checkpoints"]
         self.acting = self.schedule.actor(self.progress)
@@ -136,6 +135,12 @@ class Trainer:
         self.resumed = self.run_checkpoint.resume()
         if self.resumed and self.world is not None:
             self.world.restore(self.progress)
+        if "eval_every" in self.run_checkpoint.allowed_changes:
+            # a new evaluation schedule applies from the resume point on, as a fresh run's
+            progress = self.progress
+            progress.next_eval = named["evaluation"].next_eval_at(
+                progress.real_steps, progress.random_steps, self.frames_per_batch
+            )
         write_run_record(self.run_dir, cfg)
 
     def count(self, batch: TensorDictBase, random: bool = False) -> None:
@@ -299,7 +304,7 @@ class Trainer:
 
     def parameters_digest(self) -> str:
         """SHA-256 of every trained tensor (policy, critics, world model): equal runs match."""
-        modules = [self.agent.loss] + ([self.world.model] if self.world is not None else [])
+        modules = [self.agent.loss] + ([] if self.world is None else self.world.trained_modules())
         return parameters_digest(modules)
 
 

@@ -7,6 +7,7 @@ arguments. The loop sees :class:`WorldModelPart`.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -23,6 +24,12 @@ from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
 from torchrl_mbmf.envs.factory import action_bounds, env_metadata
 from torchrl_mbmf.envs.keys import STATE_KEY
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
+from torchrl_mbmf.envs.terminations import (
+    NEVER_TERMINATING,
+    RULES,
+    gym_id_and_kwargs,
+    termination_rule,
+)
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel, check_hidden_sizes
 from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
 from torchrl_mbmf.modules.planners import (
@@ -30,13 +37,17 @@ from torchrl_mbmf.modules.planners import (
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
+from torchrl_mbmf.modules.termination import LearnedTermination
 from torchrl_mbmf.trainers.agents import Agent
 from torchrl_mbmf.trainers.schedule import Progress
 from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.world_model.snapshots import heldout_open_loop_errors, save_fit_snapshot
+from torchrl_mbmf.world_model.termination_fit import fit_termination
 
-__all__ = ["WorldModelPart", "make_planner", "make_world_model"]
+__all__ = ["WorldModelPart", "make_planner", "make_termination_head", "make_world_model"]
+
+log = logging.getLogger(__name__)
 
 
 def make_world_model(
@@ -178,6 +189,42 @@ def make_planner(
     return PolicyGuidedMPCPlanner(model_env, actor, **kwargs)
 
 
+def make_termination_head(env: EnvBase, state_dim: int, device: torch.device) -> LearnedTermination:
+    """A :class:`~torchrl_mbmf.modules.LearnedTermination` for ``env``'s state, said in the log.
+
+    With ``world_model.learn_termination`` the head replaces the task's known rule (the user's
+    choice): the log says so once, naming the rule it replaces.
+
+    Args:
+        env: the real env (its task is named in the log).
+        state_dim: size of the state.
+        device: device of the head.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.envs import make_env
+        >>> from torchrl_mbmf.trainers.planning import make_termination_head
+        >>> make_termination_head(make_env("Hopper-v5"), 12, torch.device("cpu")).state_dim
+        12
+    """
+    task, kwargs = gym_id_and_kwargs(env) or ("this task", {})
+    name = task.split("/")[-1]
+    if name.split("-")[0] in NEVER_TERMINATING:
+        what = "no terminal states by Gymnasium's rule (the head learns that from the data)"
+    elif name.split("-")[0] in RULES and name.endswith("-v5"):
+        rule = termination_rule(task, **kwargs)
+        what = f"a known termination rule ({type(rule).__name__}), not used"
+    else:
+        what = "no known termination rule"
+    log.info(
+        "world_model.learn_termination=true: imagined episodes end where a termination head "
+        "fitted on the real terminated flags predicts; %s has %s",
+        task,
+        what,
+    )
+    return LearnedTermination(state_dim).to(device)
+
+
 class WorldModelPart:
     """World model, optimiser, real-transition dataset and planner of a model-based run.
 
@@ -218,6 +265,10 @@ class WorldModelPart:
         adaptive_horizon: calibrate the ensemble planner's disagreement threshold at every
             refit. Defaults to ``False``.
         disagreement_quantile: the held-out quantile of that threshold. Defaults to ``0.9``.
+        learn_termination: fit a :class:`~torchrl_mbmf.modules.LearnedTermination` head on
+            the real transitions' ``terminated`` flags after every model fit and end imagined
+            episodes where it predicts, instead of by the task's known rule (said once in
+            the log where the task has one). Defaults to ``False``.
 
     Examples:
         >>> from torchrl_mbmf.trainers.planning import WorldModelPart
@@ -235,7 +286,7 @@ class WorldModelPart:
     ARGUMENTS: dict[str, Setting] = settings(
         positive_int=("random_steps", "refit_every", "batch_size", "max_epochs", "patience"),
         positive=("lr",),
-        flag=("save_fits", "adaptive_horizon"),
+        flag=("save_fits", "adaptive_horizon", "learn_termination"),
         fraction=("val_fraction", "disagreement_quantile"),
     )
 
@@ -264,6 +315,7 @@ class WorldModelPart:
         probabilistic: bool = False,
         adaptive_horizon: bool = False,
         disagreement_quantile: float = 0.9,
+        learn_termination: bool = False,
     ) -> None:
         check_arguments(self.ARGUMENTS, locals())
         self.fit_kwargs = fit_dynamics_kwargs(
@@ -287,10 +339,11 @@ class WorldModelPart:
             ensemble_size=ensemble_size,
             probabilistic=probabilistic,
         ).to(device)
-        if self.model.ensemble_size > 1:
-            model_env = EnsembleLearnedDynamicsEnv(self.model, env)
-        else:
-            model_env = LearnedDynamicsEnv(self.model, env)
+        self.termination = (
+            make_termination_head(env, self.model.state_dim, device) if learn_termination else None
+        )
+        env_cls = EnsembleLearnedDynamicsEnv if self.model.ensemble_size > 1 else LearnedDynamicsEnv
+        model_env = env_cls(self.model, env, termination_fn=self.termination)
         self.optim = torch.optim.Adam(self.model.parameters(), lr=float(lr))
         self.seed = int(seed)
         self.dataset = TransitionDataset({**env_metadata(env), "seed": self.seed})
@@ -302,10 +355,22 @@ class WorldModelPart:
 
     def checkpoint_components(self) -> dict[str, Any]:
         """The tensor state a checkpoint holds (the dataset apart)."""
-        return {"world_model": self.model, "model_optim": self.optim}
+        head = {} if self.termination is None else {"termination_head": self.termination}
+        return {"world_model": self.model, "model_optim": self.optim, **head}
+
+    def trained_modules(self) -> list[torch.nn.Module]:
+        """The networks fitted here: the world model (and the termination head, if learned)."""
+        return [self.model] + ([] if self.termination is None else [self.termination])
 
     def restore(self, progress: Progress) -> None:
-        """Sets the planner's calibrated threshold from a resumed progress record."""
+        """Sets the planner's calibrated threshold from a resumed progress record.
+
+        Raises:
+            ValueError: with ``learn_termination``, a resumed dataset without ``terminated``
+                flags (saved before they were stored).
+        """
+        if self.termination is not None and not self.dataset.stores_terminated:
+            self.dataset.terminated()  # raises, naming the dataset's format
         threshold = progress.get(self.CALIBRATED)
         if threshold is not None:
             self.planner.disagreement_threshold = float(threshold)
@@ -368,6 +433,8 @@ class WorldModelPart:
         if getattr(history, "multi_step", 1) > 1:
             scalars["model/train_multi_step_loss"] = history.train_multi_step_loss[-1]
             scalars["model/val_multi_step_loss"] = history.best_val_multi_step_loss
+        if self.termination is not None:
+            scalars.update(self._fit_termination(seed))
         if self.model.ensemble_size > 1 and self.adaptive_horizon:
             threshold = self._calibrate(history.val_indices)
             progress[self.CALIBRATED] = threshold
@@ -378,6 +445,15 @@ class WorldModelPart:
             save_fit_snapshot(self.model, run_dir, len(self.dataset))
         scalars["time/model_fit_s"] = time.perf_counter() - start
         return {**heldout, **scalars}
+
+    def _fit_termination(self, seed: int) -> dict[str, float]:
+        """Refits the termination head on every real next state and its ``terminated`` flag."""
+        fit = fit_termination(self.termination, self.dataset, seed=seed)
+        return {
+            "model/termination_val_accuracy": fit.val_accuracy,
+            "model/termination_val_balanced_accuracy": fit.val_balanced_accuracy,
+            "model/termination_val_terminal": float(fit.val_terminal),
+        }
 
     def _calibrate(self, idx: torch.Tensor) -> float:
         data = self.dataset

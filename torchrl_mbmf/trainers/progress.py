@@ -19,11 +19,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from torchrl_mbmf.trainers.schedule import Actor
+
+if TYPE_CHECKING:
+    from torchrl_mbmf.trainers.settings import TrainConfig
 
 __all__ = [
     "BAR_FORMAT",
@@ -87,12 +91,14 @@ class RunPlan:
                 )
 
     @classmethod
-    def from_config(cls, cfg: Any) -> RunPlan:
+    def from_config(cls, cfg: DictConfig | TrainConfig) -> RunPlan:
         """The plan of a ``train`` config, as :class:`~torchrl_mbmf.trainers.loop.Trainer` runs it.
 
         Args:
-            cfg: the composed training config (``method``, ``total_steps``, ``env.num_envs``,
-                ``world_model``, ``planning_updates``, ``ppo`` / ``sac``).
+            cfg: the composed training config or its parsed
+                :class:`~torchrl_mbmf.trainers.settings.TrainConfig` (``method``,
+                ``total_steps``, ``env.num_envs``, ``world_model``, ``planning_updates``,
+                ``ppo`` / ``sac``).
 
         Examples:
             >>> from omegaconf import OmegaConf
@@ -109,7 +115,7 @@ class RunPlan:
         """
         method, total = str(cfg.method), int(cfg.total_steps)
         family = "sac" if method.startswith("sac") else "ppo"
-        batch = int(cfg[family].frames_per_batch)
+        batch = int(getattr(cfg, family).frames_per_batch)
         if method in ("ppo", "sac"):
             random_end = 0
             if method == "sac":
@@ -117,7 +123,7 @@ class RunPlan:
             segments = ((Actor.RANDOM, 0, random_end), (Actor.AGENT, random_end, total))
             return cls(total, tuple(s for s in segments if s[2] > s[1]))
         # the random-data phase: batches of up to 1000 steps per env (Trainer.collect_random)
-        n = max(1, int(cfg.env.get("num_envs", 1) or 1))
+        n = max(1, int(getattr(cfg.env, "num_envs", 1) or 1))
         wanted = int(cfg.world_model.random_steps)
         frames = min(1000 * n, -(-wanted // n) * n)
         random_end = min(total, -(-wanted // frames) * frames)

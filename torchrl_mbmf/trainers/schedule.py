@@ -13,9 +13,12 @@ import dataclasses
 import enum
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig
+
+if TYPE_CHECKING:
+    from torchrl_mbmf.trainers.settings import TrainConfig
 
 __all__ = ["Actor", "Phase", "PhaseSchedule", "Progress"]
 
@@ -204,11 +207,12 @@ class PhaseSchedule:
             )
 
     @classmethod
-    def from_config(cls, cfg: DictConfig) -> PhaseSchedule:
+    def from_config(cls, cfg: DictConfig | TrainConfig) -> PhaseSchedule:
         """The schedule of ``cfg.method``: each method reads only its own settings.
 
         Args:
-            cfg: the training config.
+            cfg: the training config or its parsed
+                :class:`~torchrl_mbmf.trainers.settings.TrainConfig`.
 
         Examples:
             >>> from omegaconf import OmegaConf

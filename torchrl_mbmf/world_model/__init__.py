@@ -21,6 +21,7 @@ from torchrl_mbmf.world_model.snapshots import (
     load_fit_snapshot,
     save_fit_snapshot,
 )
+from torchrl_mbmf.world_model.termination_fit import fit_termination
 
 __all__ = [
     "DisagreementCalibration",
@@ -32,6 +33,7 @@ __all__ = [
     "fit_dynamics_kwargs",
     "fit_ensemble",
     "fit_snapshots",
+    "fit_termination",
     "fit_world_model",
     "heldout_open_loop_errors",
     "load_fit_snapshot",

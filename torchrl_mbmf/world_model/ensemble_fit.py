@@ -25,20 +25,10 @@ def fit_ensemble(
 ) -> EnsembleFitHistory:
     """Fits every member on its own bootstrap resample, with early stopping on a held-out split.
 
-    A thin entry point to the one fitter,
-    :func:`~torchrl_mbmf.world_model.fit.fit_world_model`. The data handling is
-    :func:`~torchrl_mbmf.trainers.fit_dynamics`' (the same split for the
-    same ``seed``, scaler fitted on the training split, data scaled once, best held-out weights
-    restored at the end, warm start from the current weights). Then each member ``k`` draws
-    ``num_train`` indices with replacement from the training split (a torch ``Generator``
-    seeded by ``seed``; ``bootstrap=False`` gives every member the whole split), and every
-    epoch visits each member's sample in its own random order. One minibatch step takes
-    ``batch_size`` rows for every member at once, ``[K, batch_size, in]``, runs all members in
-    one batched forward and minimises the sum over members of their losses (so each member gets
-    exactly the gradient of its own loss; Adam is element-wise, so one optimiser over the
-    stacked weights equals one per member). The early-stopping metric is the held-out MSE of
-    each member's mean prediction, averaged over members (also for a probabilistic ensemble,
-    whose NLL can keep falling by shrinking variances while its means overfit).
+    A thin entry point to :func:`~torchrl_mbmf.world_model.fit.fit_world_model`: the split
+    and scaling of :func:`~torchrl_mbmf.world_model.fit_dynamics`, all members in one batched
+    step, early stopping on the members' mean held-out MSE. Design:
+    ``docs/design/world_model_fit.md``.
 
     Args:
         model: the ensemble, trained in place.
@@ -119,19 +109,10 @@ def calibrate_disagreement_threshold(
 ) -> DisagreementCalibration:
     """Picks the planner's disagreement threshold from held-out real transitions.
 
-    The rule: the threshold is the ``quantile`` of the ensemble's disagreement
+    The threshold is the ``quantile`` of the ensemble's disagreement
     (:meth:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel.disagreement`) over held-out real
-    ``(s, a)`` pairs. On real data the model's one-step error is what the fit accepted (its
-    held-out loss), so a disagreement up to the level of the ``quantile`` of real transitions
-    counts as "as sure as on real data"; an imagined step beyond it is less familiar to the
-    ensemble than ``1 - quantile`` of the real data, and the planner stops trusting the model
-    there. Pass transitions the ensemble was not trained on (a held-out split or fresh data);
-    on its own training data the disagreement is lower and the threshold too strict.
-
-    The next states are used for diagnostics only: the mean one-step normalised error (mean
-    over state dims of the squared error of the members' mean delta, in ``delta_scale`` units)
-    below and above the threshold, and its rank correlation with the disagreement; a useful
-    disagreement has ``error_above > error_below`` and a positive correlation (both are logged).
+    ``(s, a)`` pairs (never the training data: the threshold would be too strict). The next
+    states only feed the diagnostics. Why: ``docs/design/world_model_fit.md``.
 
     Args:
         model: the fitted ensemble.

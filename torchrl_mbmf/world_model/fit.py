@@ -341,16 +341,10 @@ def fit_world_model(
 ) -> FitHistory | EnsembleFitHistory:
     """Fits a world model (one network or an ensemble) with Adam and early stopping.
 
-    The one fitter behind :func:`~torchrl_mbmf.trainers.fit_dynamics` (one network, the
-    thesis fit, with the optional multi-step term) and
-    :func:`~torchrl_mbmf.trainers.fit_ensemble` (stacked members on bootstrap resamples);
-    both document the algorithm. Shared: the split (the first ``randperm`` of the fit's
-    generator, seeded by ``seed``), the scaler fitted on the training split, the data scaled
-    once, the early-stopping loop on a held-out criterion, and the best held-out weights
-    restored at the end. Which objective runs follows the model: an ensemble
-    (``ensemble_size >= 2``, e.g. an :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel`)
-    trains its members with their per-member loss (``bootstrap`` defaults to ``True``), the
-    one network (``ensemble_size=1``) the one-step (and multi-step) loss.
+    The one fitter behind :func:`fit_dynamics` (one network) and
+    :func:`~torchrl_mbmf.world_model.ensemble_fit.fit_ensemble` (an ensemble, members on
+    bootstrap resamples): the objective follows ``model.ensemble_size``. The best held-out
+    weights are restored at the end. Design: ``docs/design/world_model_fit.md``.
 
     Args:
         model: the world model, trained in place.
@@ -485,11 +479,8 @@ def _log(history: FitHistory | EnsembleFitHistory) -> None:
 def fit_dynamics_kwargs(world_model: Mapping[str, Any]) -> dict[str, Any]:
     """The keyword arguments of :func:`fit_dynamics` set by a ``world_model`` config node.
 
-    One place maps the config keys to the fit (``lr``, ``batch_size``, ``max_epochs``,
-    ``val_fraction``, ``patience``, ``multi_step``, ``multi_step_weight``,
-    ``early_stopping``), so every caller passes the same settings. ``multi_step``,
-    ``multi_step_weight`` and ``early_stopping`` default to ``1``, ``1.0`` and
-    ``"objective"`` (the thesis' one-step fit) when a config predates them.
+    ``multi_step``, ``multi_step_weight`` and ``early_stopping`` default to ``1``, ``1.0``
+    and ``"objective"`` (the thesis' one-step fit) when a config predates them.
 
     Args:
         world_model: the ``world_model`` config (a ``DictConfig`` or a mapping).
@@ -531,43 +522,11 @@ def fit_dynamics(
 ) -> FitHistory:
     """Fits the world model on real transitions with Adam and early stopping.
 
-    The thesis' settings (table 7): Adam at lr 1e-4, batch 512, up to 200 epochs, early stopping
-    on a held-out split. The scaler is fitted on the training split (``fit_normalizer``), the
-    weights of the best held-out epoch are restored at the end, and the model keeps training
-    from its current weights (refits during training warm-start).
-
-    With ``multi_step = k > 1`` every minibatch step also rolls the model open loop over as
-    many windows of ``k`` consecutive real transitions of one episode (never across a done,
-    truncation or reset, see :meth:`~torchrl_mbmf.data.TransitionDataset.windows`) and adds
-    ``multi_step_weight`` times their ``k``-step loss
-    (:meth:`~torchrl_mbmf.objectives.DynamicsLoss.multi_step_loss`) to the one-step loss;
-    gradients flow through the rollout. Only windows whose ``k`` transitions all lie in the
-    training split are trained on, so held-out transitions stay unseen. The split and the
-    one-step minibatch order are those of the one-step fit with the same seed (the windows'
-    order comes from a second generator), so with ``multi_step=1`` (the default, the thesis)
-    the fit is bit-identical to one without the option, and a one-step and a multi-step fit
-    differ only in the loss.
-
-    Early stopping and the kept weights follow ``early_stopping``. The default,
-    ``"objective"``, scores each epoch by the held-out value of the loss being trained:
-    one-step loss + ``multi_step_weight`` x the ``k``-step loss of the windows that contain a
-    held-out transition (a random transition split leaves almost no window wholly held out,
-    a share ``val_fraction ** k``; these windows were never trained on as windows, though
-    their other transitions were). Selecting on the one-step loss alone (``"one_step"``) can
-    undo the multi-step training: the one-step loss prefers exactly the one-step-optimal
-    weights whose errors compound, so it may restore an early epoch (on the noisy toy system
-    of the tests it kept epoch 6 of 40 and lost the whole gain for one seed in eight). Both
-    are logged every epoch (:class:`FitHistory`); with ``multi_step=1`` they coincide.
-
-    The loop is kept tight without changing a bit of the result: the data are scaled once,
-    each epoch gathers the training split once in the epoch's shuffled order (its minibatches
-    are then contiguous slices), the hidden ReLUs run in place
-    (:meth:`~torchrl_mbmf.objectives.DynamicsLoss.scaled_loss`) and the best weights are
-    copied into preallocated tensors. On one CPU thread about three quarters of a step is
-    then the network's matrix products; the stock Adam is most of the rest, and
-    :func:`dynamics_optimizer` with ``fused_adam=True`` (opt-in, other float rounding)
-    removes most of it. A cap on the epochs of a refit is ``max_epochs`` (a capped fit is
-    exactly the first ``max_epochs`` epochs of the uncapped one).
+    The thesis fit (table 7: Adam at lr 1e-4, batch 512, up to 200 epochs, early stopping on a
+    held-out split), warm-started from the current weights. ``multi_step = k > 1`` adds the
+    ``k``-step open-loop loss of windows of consecutive transitions of the training split;
+    ``multi_step=1`` (the default) is bit-identical to the thesis fit. The split, the
+    multi-step term and the early-stopping criterion: ``docs/design/world_model_fit.md``.
 
     Args:
         model: the world model, trained in place.

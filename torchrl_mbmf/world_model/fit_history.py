@@ -110,9 +110,8 @@ class FitHistory(FitRecord):
         train_multi_step_loss: mean ``k``-step open-loop loss of the training windows in each
             epoch (empty when ``k == 1``).
         val_multi_step_loss: ``k``-step open-loop loss after each epoch on the windows that
-            contain at least one held-out transition (never trained on as a window; their
-            other transitions are training data of the one-step term, so the score is only
-            partly held out). Empty when ``k == 1``; NaN if there is no such window.
+            contain at least one held-out transition. Empty when ``k == 1``; NaN if there is
+            no such window.
         best_val_multi_step_loss: ``val_multi_step_loss`` of the kept weights (``None``
             when ``k == 1``).
         early_stopping: the criterion that chose the kept weights (see
@@ -179,12 +178,9 @@ def dynamics_optimizer(
 ) -> torch.optim.Adam:
     """The world model's Adam, to pass to every :func:`fit_dynamics` refit of a run.
 
-    The default is the thesis' optimiser, :class:`torch.optim.Adam` with its stock settings:
-    the optimiser :func:`fit_dynamics` builds when it is given none. ``fused_adam=True`` asks
-    for PyTorch's fused kernel instead (``Adam(fused=True)``), one pass over each parameter
-    per step instead of about seven: the same update formula, but computed in another order,
-    so the weights differ from the stock Adam's in the last float bits (on the order of
-    ``1e-8`` after tens of steps) and a fit is no longer bit-identical to the thesis loop.
+    The thesis' stock :class:`torch.optim.Adam` by default; ``fused_adam=True`` is PyTorch's
+    fused kernel (faster, but other float rounding: no longer bit-identical to the thesis
+    fit; see ``docs/design/world_model_fit.md``).
 
     Args:
         model: the world model.

@@ -1,11 +1,9 @@
 """What a run records of its world-model fits: a weight snapshot per fit, held-out errors.
 
-Thesis tables 8 and 9 give the model's open-loop errors; at the thesis' budgets the model is
-refitted every 50 PPO updates, so a run records, at each fit, the fitted weights (with their
-scaling statistics) under ``<run_dir>/world_models/fit-<transitions>/`` (raw tensor files in
-``state/`` and an integrity record: loading never unpickles), and just before each refit the
-open-loop errors of the model being replaced on the transitions collected since it was fitted:
-real data of the policy's own episodes that this model never trained on.
+Each fit's weights go to ``<run_dir>/world_models/fit-<transitions>/`` (raw tensors and an
+integrity record, never unpickled); before each refit, :func:`heldout_open_loop_errors` scores
+the model being replaced on the transitions it never trained on. Why:
+``docs/design/world_model_fit.md``.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 import abc
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import Bounded
@@ -13,6 +13,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.planners import MPCPlannerBase
 
+from torchrl_mbmf.modules.planners.env_rollout import check_actor_fits, rollout_in_env
 from torchrl_mbmf.modules.planners.fast_model import CachedModelStep
 from torchrl_mbmf.modules.planners.policy_rollout import PolicyRollout
 from torchrl_mbmf.modules.planners.rollout import (
@@ -27,50 +28,22 @@ from torchrl_mbmf.modules.planners.rollout import (
     model_transition,
 )
 from torchrl_mbmf.modules.planners.sampling import ActorSampler
-from torchrl_mbmf.modules.planners.stages import (
-    Plan,
-    counted_steps,
-    discounted_return,
-    select_best,
-    terminated_return,
-    truncated_return,
-)
+from torchrl_mbmf.modules.planners.scoring import CandidateScoring
+from torchrl_mbmf.modules.planners.stages import Plan, select_best
 
 
 # --------------------------------------------------------------------- planner
-class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
+class ShootingPlanner(CandidateScoring, MPCPlannerBase, metaclass=abc.ABCMeta):
     """Base of the shooting planners: ``m`` candidates, ``h`` imagined steps, best first action.
 
-    :meth:`plan` reads as four stages: expand each real state of the batch ``[*B]`` into
-    ``[*B, m]`` candidates, roll them ``h`` steps in the learned env drawing each step's
-    actions from :meth:`sample_candidate_actions`, score them with :meth:`score_candidates`
-    (discounted sum of predicted rewards, plus the discounted terminal value when a
-    ``value_module`` is given) and select the best candidate of each batch element, whose first
-    action is written. Subclasses define how candidate actions are drawn; scoring is a
-    replaceable hook too. Candidate sampling runs under ``torch.no_grad()`` and
-    ``ExplorationType.RANDOM`` whatever the caller's mode.
-
-    **Terminations.** A candidate's score stops at its first imagined terminal state (the
-    learned env's ``terminated``): the reward of that step counts, later rewards and the
-    terminal value do not (:func:`~torchrl_mbmf.modules.planners.terminated_return`). On every
-    path: the tensor loops apply the env's own rule, ``env.rollout`` reports it.
-
-    With a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` the rollout is a plain tensor loop
-    over the model's cached fused step (:class:`CachedModelStep`: no tensordict per step, no
-    spec checks, no autograd, pre-packed oneDNN weights on CPU); any
-    other env (any other :class:`~torchrl.envs.model_based.ModelBasedEnvBase`, a subclass of the
-    learned env with its own ``_step``, a :class:`~torchrl.envs.TransformedEnv` around it, see
-    :func:`~torchrl_mbmf.modules.planners.learned_model`) goes through ``env.rollout``.
-    Both draw the same random numbers in the same order, so they choose the same action
-    (``planner.fast_path = False`` forces the generic path). The policy-guided planner runs
-    that loop fused (:class:`~torchrl_mbmf.modules.planners.PolicyRollout`:
-    one ``[state, action]`` buffer, the actor's layers as single ``addmm`` calls, about a
-    dozen tensor operations per imagined step), with results equal bit for bit to the
-    step-by-step loop, which ``planner.fused_rollout = False`` selects.
-
-    When an ``actor`` is given, the planner also writes the actor's distribution parameters
-    (``loc``, ``scale``) at the real observation and the log-probability of the chosen action
-    under them (``log_prob_key``), so the collected transitions feed PPO's loss.
+    :meth:`plan` expands each real state ``[*B]`` into ``[*B, m]`` candidates, rolls them
+    ``h`` steps with actions from :meth:`sample_candidate_actions` (``no_grad``, random
+    exploration), scores them (:meth:`score_candidates`) and writes the best candidate's
+    first action; with an ``actor``, also the actor's ``loc``/``scale`` and the action's
+    log-prob (for PPO's loss). A :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` takes a tensor
+    loop (fused for policy samples, :class:`PolicyRollout`), any other env ``env.rollout``,
+    with the same random draws and choice (``fast_path`` / ``fused_rollout = False`` force
+    the slower paths). Design notes: ``docs/design/planners.md``.
 
     Args:
         env: the learned env (``batch_locked=False``) with a bounded continuous action spec.
@@ -87,8 +60,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         discount: discount of the score. Defaults to ``1.0`` (the thesis' plain sum).
         action_key: action key. Defaults to ``"action"``.
         log_prob_key: key of the chosen action's log-prob. Defaults to ``None``: the actor's
-            own ``log_prob_key`` (what TorchRL's losses built on that actor read), else
-            ``"action_log_prob"``.
+            own ``log_prob_key``, else ``"action_log_prob"``.
         stats_key: key under which ``best_return`` and ``mean_return`` of the candidates are
             written, or ``None``. Defaults to ``"planner"``.
 
@@ -120,15 +92,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         log_prob_key: NestedKey | None = None,
         stats_key: NestedKey | None = "planner",
     ) -> None:
-        for name, value in (("num_candidates", num_candidates), ("horizon", horizon)):
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise TypeError(f"{name} must be an integer >= 1, got {value!r}")
-            if value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if isinstance(discount, bool) or not isinstance(discount, int | float):
-            raise TypeError(f"discount must be a number in (0, 1], got {discount!r}")
-        if not 0.0 < discount <= 1.0:
-            raise ValueError(f"discount must be in (0, 1], got {discount}")
+        _check_sizes(num_candidates, horizon, discount)
         super().__init__(env, action_key=action_key)
         self.num_candidates = num_candidates
         self.horizon = horizon
@@ -136,14 +100,8 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         self.value_module = value_module
         self.value_key = value_key
         self.stats_key = stats_key
-        spec = env.full_action_spec_unbatched[action_key]
-        if not isinstance(spec, Bounded) or spec.domain != "continuous":
-            raise ValueError(
-                f"the env's {action_key!r} spec must be bounded and continuous (a torchrl "
-                f"Bounded spec), got {type(spec).__name__}"
-            )
-        low, high = spec.space.low, spec.space.high
-        self.action_dim = int(spec.shape[-1])
+        low, high = _action_bounds(env, action_key)
+        self.action_dim = int(low.shape[-1])
         self.register_buffer("action_low", low.clone(), persistent=False)
         self.register_buffer("action_high", high.clone(), persistent=False)
         self.fast_path = learned_model(env) is not None
@@ -153,7 +111,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         self.sampler: ActorSampler | None = None
         if actor is not None:
             self.sampler = ActorSampler(actor)
-            self._check_actor_size()
+            check_actor_fits(self.sampler, env, self.action_dim)
         if log_prob_key is None:
             log_prob_key = "action_log_prob" if self.sampler is None else self.sampler.log_prob_key
         self.log_prob_key = log_prob_key
@@ -166,28 +124,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             out_keys += [(stats_key, "best_return"), (stats_key, "mean_return")]
         self.out_keys = out_keys
 
-    def _check_actor_size(self) -> None:
-        obs_key = self.sampler.observation_key
-        spec = self.env.full_observation_spec_unbatched
-        if obs_key not in spec.keys(True):
-            raise KeyError(
-                f"the actor reads {obs_key!r}, which the learned env does not produce; it "
-                f"produces {sorted(map(str, spec.keys(True, True)))}"
-            )
-        obs = spec[obs_key].zero()
-        try:
-            with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-                action = self.sampler.sample(obs.unsqueeze(0))
-        except RuntimeError as err:
-            raise ValueError(
-                f"the actor cannot read the env's {obs_key!r} of shape {tuple(obs.shape)}: {err}"
-            ) from err
-        if action.shape[-1] != self.action_dim:
-            raise ValueError(
-                f"the actor's actions have size {action.shape[-1]}, the env's action spec "
-                f"has size {self.action_dim}"
-            )
-
     # ------------------------------------------------------------------- hooks
     @abc.abstractmethod
     def sample_candidate_actions(self, observation: torch.Tensor, step: int) -> torch.Tensor:
@@ -198,42 +134,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
                 (the state when the learned env has no separate observation).
             step: the imagined step.
         """
-
-    def score_candidates(
-        self,
-        rewards: torch.Tensor,
-        final: TensorDictBase | None,
-        trusted_steps: torch.Tensor | None = None,
-        terminated: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """Candidate scores ``[*B, m]``: discounted return plus the optional terminal value.
-
-        A candidate that reaches a terminal state scores the rewards up to and including
-        that step, nothing after it and no terminal value
-        (:func:`~torchrl_mbmf.modules.planners.terminated_return`). An overriding hook is
-        called with the rewards after each candidate's terminal step zeroed (and, with an
-        adaptive horizon, the steps counted up to that terminal step as ``trusted_steps``).
-
-        Args:
-            rewards: imagined rewards ``[*B, m, h]``.
-            final: the learned env's observation entries at the last (trusted) imagined
-                state, batch ``[*B, m]`` (``None`` when no score reads it).
-            trusted_steps: each candidate's trusted steps ``[*B, m]`` (adaptive horizon:
-                :func:`~torchrl_mbmf.modules.planners.truncated_return`), or ``None`` for
-                the whole horizon. Defaults to ``None``.
-            terminated: whether each imagined step reached a terminal state ``[*B, m, h]``,
-                or ``None`` when the env never terminates. Defaults to ``None``.
-        """
-        value = self.terminal_value(final) if self.value_module is not None else None
-        if terminated is not None:
-            return terminated_return(rewards, terminated, self.discount, value, trusted_steps)
-        if trusted_steps is None:
-            return discounted_return(rewards, self.discount, value)
-        return truncated_return(rewards, trusted_steps, self.discount, value)
-
-    def terminal_value(self, final: TensorDictBase) -> torch.Tensor:
-        """``value_module``'s value ``[*B, m]`` at the last imagined state."""
-        return self.value_module(final.copy()).get(self.value_key)[..., 0]
 
     def termination(self) -> Termination | None:
         """The learned env's terminal-state rule for this plan, or ``None`` if it never ends."""
@@ -250,10 +150,7 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         return None
 
     def refined_sequences(self, rollout: ImaginedRollout, returns: torch.Tensor) -> torch.Tensor:
-        """Open-loop sequences ``[*B, n, h, A]`` for the next round (refining planners).
-
-        Called ``refinement_rounds`` times, with the previous round's rollout and scores.
-        """
+        """Open-loop sequences ``[*B, n, h, A]`` for the next round, from the last one's."""
         raise NotImplementedError(f"{type(self).__name__} has no refinement rounds")
 
     refinement_rounds = 0
@@ -273,12 +170,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
 
         return source
 
-    def _final_entries(self, state: torch.Tensor) -> TensorDictBase:
-        entries = {self.state_key: state}
-        if self.env.observation_key is not None:
-            entries[self.env.observation_key] = self.env.observation(state)
-        return TensorDict(entries, batch_size=state.shape[:-1])
-
     def rollout(
         self, state: torch.Tensor, source: CandidateSource | None = None
     ) -> ImaginedRollout:
@@ -286,8 +177,8 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
 
         Args:
             state: real states.
-            source: the candidate source. Defaults to :meth:`candidate_source`; the
-                policy-guided planner then runs its fused loop when it can.
+            source: the candidate source. Defaults to :meth:`candidate_source` (or the fused
+                policy loop when it applies).
         """
         rollout = self.policy_rollout
         if (
@@ -316,46 +207,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             termination=self.termination(),
         )
 
-    def _rollout_generic(
-        self, tensordict: TensorDictBase
-    ) -> tuple[torch.Tensor, torch.Tensor, TensorDictBase, torch.Tensor]:
-        env = self.env
-        start = tensordict.select(*self.in_keys).unsqueeze(-1)
-        start = start.expand(*tensordict.batch_size, self.num_candidates).clone()
-        if self.sampler is not None:
-            obs_key = self.sampler.observation_key
-        else:
-            obs_key = getattr(env, "observation_key", None) or self.state_key
-        planner = self
-
-        class _CandidateSampler:
-            step = 0
-
-            def __call__(self, td: TensorDictBase) -> TensorDictBase:
-                actions = planner.sample_candidate_actions(td.get(obs_key), self.step)
-                td.set(planner.action_key, actions)
-                self.step += 1
-                return td
-
-        rollout = env.rollout(
-            self.horizon,
-            policy=_CandidateSampler(),
-            tensordict=env.reset(start),
-            auto_reset=False,
-            break_when_any_done=False,
-        )
-        first = rollout.get(self.action_key)[..., 0, :]
-        rewards = rollout.get(("next", "reward"))[..., 0]
-        final = rollout.get("next")[..., -1].select(*self.in_keys)
-        nxt = rollout.get("next")
-        key = "terminated" if "terminated" in nxt else "done"
-        terminated = nxt.get(key, None)
-        if terminated is None:
-            terminated = torch.zeros(rewards.shape, dtype=torch.bool, device=rewards.device)
-        else:
-            terminated = terminated.reshape(rewards.shape).bool()
-        return first, rewards, final, terminated
-
     def _scored(
         self, state: torch.Tensor, source: CandidateSource | None
     ) -> tuple[ImaginedRollout, torch.Tensor]:
@@ -363,33 +214,11 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         final = self._final_entries(out.final_state) if self._reads_final() else None
         return out, self._score(out.rewards, final, out.trusted_steps, out.terminated)
 
-    def _score(
-        self,
-        rewards: torch.Tensor,
-        final: TensorDictBase | None,
-        trusted_steps: torch.Tensor | None,
-        terminated: torch.Tensor | None,
-    ) -> torch.Tensor:
-        if terminated is not None:
-            if type(self).score_candidates is ShootingPlanner.score_candidates:
-                return self.score_candidates(rewards, final, trusted_steps, terminated)
-            # an overridden hook sees the rewards after each candidate's terminal step zeroed
-            # (and, when it is given trusted steps, the counted steps as those)
-            counted, _ = counted_steps(terminated, trusted_steps)
-            steps = torch.arange(rewards.shape[-1], device=rewards.device)
-            rewards = rewards.masked_fill(steps >= counted.unsqueeze(-1), 0.0)
-            if trusted_steps is not None:
-                trusted_steps = counted
-        if trusted_steps is None:  # the two-argument hook of planners that override it
-            return self.score_candidates(rewards, final)
-        return self.score_candidates(rewards, final, trusted_steps)
-
     def plan(self, tensordict: TensorDictBase) -> Plan:
         """Expands, rolls out, scores and selects the candidates of every batch element.
 
-        With ``refinement_rounds`` the rounds after the first roll out the mixture of the
-        candidate source and :meth:`refined_sequences`; the plan is then over the candidates
-        of every round.
+        With ``refinement_rounds``, later rounds roll out the mixture of the candidate
+        source and :meth:`refined_sequences`; the plan is over every round's candidates.
 
         Args:
             tensordict: real states, batch ``[*B]``.
@@ -397,20 +226,10 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
         Returns:
             The :class:`Plan`, with the statistics the planner writes.
         """
-        state = tensordict.get(self.state_key, None)
-        if state is None:
-            raise KeyError(
-                f"{type(self).__name__} plans from {self.state_key!r}, which its input lacks "
-                f"(keys: {sorted(map(str, tensordict.keys(True, True)))})"
-            )
-        if not torch.isfinite(state).all():
-            raise ValueError(
-                f"{type(self).__name__} got a NaN or Inf {self.state_key!r}: no plan can start "
-                "from it"
-            )
+        state = _start_state(type(self).__name__, self.state_key, tensordict)
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             if not self.fast_path:
-                first, rewards, final, terminated = self._rollout_generic(tensordict)
+                first, rewards, final, terminated = rollout_in_env(self, tensordict)
                 returns = self._score(rewards, final, None, terminated)
                 return Plan(first, returns, select_best(returns))
             out, returns = self._scored(state, None)
@@ -429,11 +248,6 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
                 scores.append(returns)
             returns = torch.cat(scores, dim=-1)
             return Plan(torch.cat(firsts, dim=-2), returns, select_best(returns))
-
-    def _reads_final(self) -> bool:
-        # the stock score reads the last imagined state only for a terminal value
-        stock = type(self).score_candidates is ShootingPlanner.score_candidates
-        return self.value_module is not None or not stock
 
     def planning(self, td: TensorDictBase) -> torch.Tensor:
         """The action to execute now ``[*B, action_dim]`` (``MPCPlannerBase`` contract)."""
@@ -469,6 +283,40 @@ class ShootingPlanner(MPCPlannerBase, metaclass=abc.ABCMeta):
             for name, value in plan.statistics().items():
                 out.set((self.stats_key, name), value)
         return out
+
+
+def _check_sizes(num_candidates: int, horizon: int, discount: float) -> None:
+    for name, value in (("num_candidates", num_candidates), ("horizon", horizon)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypeError(f"{name} must be an integer >= 1, got {value!r}")
+        if value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    if isinstance(discount, bool) or not isinstance(discount, int | float):
+        raise TypeError(f"discount must be a number in (0, 1], got {discount!r}")
+    if not 0.0 < discount <= 1.0:
+        raise ValueError(f"discount must be in (0, 1], got {discount}")
+
+
+def _action_bounds(env: ModelBasedEnvBase, action_key: NestedKey) -> tuple[torch.Tensor, ...]:
+    spec = env.full_action_spec_unbatched[action_key]
+    if not isinstance(spec, Bounded) or spec.domain != "continuous":
+        raise ValueError(
+            f"the env's {action_key!r} spec must be bounded and continuous (a torchrl "
+            f"Bounded spec), got {type(spec).__name__}"
+        )
+    return spec.space.low, spec.space.high
+
+
+def _start_state(name: str, state_key: NestedKey, tensordict: TensorDictBase) -> torch.Tensor:
+    state = tensordict.get(state_key, None)
+    if state is None:
+        raise KeyError(
+            f"{name} plans from {state_key!r}, which its input lacks "
+            f"(keys: {sorted(map(str, tensordict.keys(True, True)))})"
+        )
+    if not torch.isfinite(state).all():
+        raise ValueError(f"{name} got a NaN or Inf {state_key!r}: no plan can start from it")
+    return state
 
 
 __all__ = ["ShootingPlanner"]

@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
+from torchrl_mbmf.modules.mlp import addmm_relu, affine
 
 Step = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
@@ -45,26 +46,6 @@ class ModelLayers:
     last: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
-def addmm_relu(bias: torch.Tensor, x: torch.Tensor, weight_t: torch.Tensor) -> torch.Tensor:
-    """``relu(bias + x @ weight_t)``: ``addmm``, then a ReLU in place on its fresh output.
-
-    The same values as ``relu(linear(x, weight, bias))`` for a 2-d ``x``, in two tensor calls
-    (``torch._addmm_activation`` does the same in one call but costs more on CPU).
-
-    Args:
-        bias: ``[out]``.
-        x: ``[N, in]``.
-        weight_t: ``[in, out]`` (the transposed weight of a linear layer).
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.modules.planners.fast_model import addmm_relu
-        >>> addmm_relu(torch.tensor([1.0, -5.0]), torch.ones(1, 2), torch.eye(2))
-        tensor([[2., 0.]])
-    """
-    return torch.addmm(bias, x, weight_t).relu_()
-
-
 def _packed_linear_available(weight: torch.Tensor) -> bool:
     return (
         weight.device.type == "cpu"
@@ -94,18 +75,16 @@ def _layer_fn(
         except (RuntimeError, TypeError):
             pass
 
+    weight_t = weight.t()
     if type(activation) is nn.ReLU:  # in place on the fresh output: same values, fewer ops
-        weight_t = weight.t()
 
         def relu_layer(x: torch.Tensor) -> torch.Tensor:
-            if x.dim() == 2:  # what ``linear`` runs for a 2-d input, then the ReLU
-                return addmm_relu(bias, x, weight_t)
-            return nn.functional.linear(x, weight, bias).relu_()
+            return affine(x, weight_t, bias).relu_()
 
         return relu_layer
 
     def layer(x: torch.Tensor) -> torch.Tensor:
-        y = nn.functional.linear(x, weight, bias)
+        y = affine(x, weight_t, bias)  # what ``linear`` runs
         return y if activation is None else activation(y)
 
     return layer
@@ -265,3 +244,7 @@ class CachedModelStep:
             return state + x[..., :d], x[..., d:]
 
         return step
+
+
+# addmm_relu lives in modules.mlp; re-exported here for the old import path
+__all__ = ["CachedModelStep", "ModelLayers", "addmm_relu", "slot_versions", "tensor_slots"]

@@ -121,10 +121,11 @@ class PolicyRollout:
         first = None
         ends = None if termination is None else state.new_zeros(horizon, n, dtype=torch.bool)
         sample = self.sampler.sample_params
+        noise = state.new_empty(n, act.shape[-1])
         for t in range(horizon):
             if t and not obs_is_view:
                 obs = self.observation(s)
-            sample(*params(obs), out=act)
+            sample(*params(obs), out=act, noise=noise)
             if first is None:
                 first = act.clone()
             if clip:

@@ -2,85 +2,28 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import distributions as D
 from torch import nn
-from torchrl.modules import MLP, IndependentNormal, TanhNormal
+from torchrl.modules import IndependentNormal, TanhNormal
 
-from torchrl_mbmf.modules.actors import TanhLoc
-from torchrl_mbmf.modules.planners.fast_model import addmm_relu, slot_versions, tensor_slots
-
-ParamsFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
-_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
-
-
-def _flat_layers(net: nn.Module) -> list[nn.Module]:
-    """The modules a plain ``Sequential`` (or a non-reshaping torchrl ``MLP``) runs in turn.
-
-    A :class:`~torchrl_mbmf.modules.actors.TanhLoc` unrolls into its network's layers and a
-    ``Tanh``.
-    """
-    if type(net) is TanhLoc:
-        return [*_flat_layers(net.net), nn.Tanh()]
-    plain = type(net) is nn.Sequential or (type(net) is MLP and not net._reshape_out)
-    if not plain:
-        return [net]
-    return [leaf for m in net for leaf in _flat_layers(m)]
-
-
-def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
-    """``layers`` run in turn, with each ``Linear`` as one ``addmm`` on live weights.
-
-    Values equal the modules' own: ``nn.Linear`` on a 2-d input is ``addmm(b, x, W.t())``, a
-    ReLU right after it runs in place on that fresh output and a ``Tanh`` is ``torch.tanh``.
-    Other modules are called as is.
-    """
-    ops: list[tuple[str, object, object]] = []
-    for m in layers:
-        if type(m) is nn.Linear and m.bias is not None:
-            ops.append(("linear", m.weight.detach().t(), m.bias.detach()))
-        elif type(m) is nn.ReLU and ops and ops[-1][0] == "linear":
-            ops[-1] = ("linear_relu", *ops[-1][1:])
-        elif type(m) is nn.Tanh:
-            ops.append(("tanh", None, None))
-        else:
-            ops.append(("call", m, None))
-
-    def run(x: torch.Tensor) -> torch.Tensor:
-        if x.dim() != 2:
-            x = x.reshape(-1, x.shape[-1])
-        for kind, a, b in ops:
-            if kind == "call":
-                x = a(x)
-            elif kind == "tanh":
-                x = torch.tanh(x)
-            elif kind == "linear_relu":
-                x = addmm_relu(b, x, a)
-            else:
-                x = torch.addmm(b, x, a)
-        return x
-
-    return run
+from torchrl_mbmf.modules.planners.actor_params import ParamsFn, TightParams, normal_log_prob
 
 
 class ActorSampler:
     """Tensor-in, tensor-out view of a ``ProbabilisticActor`` for tight planning loops.
 
-    A planner draws ``B x m`` actions per imagined step; going through the actor's tensordict
-    interface (``actor.get_dist`` then ``sample``) costs about 10x the network itself on a CPU.
-    This helper reaches the actor's parameter network directly when the actor is the usual
-    ``TensorDictModule(net, in_keys=[obs], out_keys=[loc, scale])`` followed by the
-    distribution, and samples :class:`~torchrl.modules.TanhNormal`,
-    :class:`~torchrl.modules.IndependentNormal` and :class:`torch.distributions.Normal` with
-    their reparameterisation (``loc + scale * randn``, then the tanh and affine maps), which
-    draws the same random numbers and gives the same values as the distributions' own
-    ``sample``. Other actors fall back on a tensordict pass and the distribution's ``sample``.
+    Going through the actor's tensordict interface costs about 10x the network itself on a
+    CPU. For the usual ``TensorDictModule(net, in_keys=[obs], out_keys=[loc, scale])`` and a
+    :class:`~torchrl.modules.TanhNormal`, :class:`~torchrl.modules.IndependentNormal` or
+    :class:`torch.distributions.Normal`, this samples by reparameterisation (same random
+    numbers, same values as the distribution's ``sample``); other actors fall back on a
+    tensordict pass and the distribution's ``sample``.
 
     Args:
         actor: a TorchRL ``ProbabilisticActor`` (any ``ProbabilisticTensorDictSequential``).
@@ -118,9 +61,7 @@ class ActorSampler:
             )
         self.observation_key: NestedKey = in_keys.pop()
         self._net: nn.Module | None = None
-        self._slots: list[tuple[dict[str, torch.Tensor | None], str]] | None = None
-        self._tight: tuple[ParamsFn, torch.Tensor | None] | None = None
-        self._tight_key: tuple[tuple[int, int, int], ...] | None = None
+        self._tight: TightParams | None = None
         self._params_fn = self._make_params_fn(params_modules)
         self._fast = self.distribution_class in (TanhNormal, IndependentNormal, D.Normal)
         if self.distribution_class is TanhNormal:
@@ -130,24 +71,23 @@ class ActorSampler:
             self._upscale = self.distribution_kwargs.get("upscale", 5.0)
             self._mid, self._half = (high + low) / 2, (high - low) / 2
             self._affine = bool((high != 1.0).any() or (low != -1.0).any())
-        # log-probs in closed form where the distribution is exactly "Normal, then tanh (and
-        # the affine map to [low, high])" or an independent Normal, as torchrl builds them
+        # closed-form log-probs for exactly "Normal, then tanh (and the affine map to [low,
+        # high])" or an independent Normal, as torchrl builds them
         kwargs = set(self.distribution_kwargs)
         if self.distribution_class is TanhNormal:
-            self.closed_form_log_prob = kwargs <= {"low", "high", "tanh_loc", "upscale"} and (
-                not self._tanh_loc
-            )
+            self.closed_form_log_prob = kwargs <= {"low", "high", "tanh_loc", "upscale"}
+            self.closed_form_log_prob &= not self._tanh_loc
         else:
             self.closed_form_log_prob = self.distribution_class is IndependentNormal and not kwargs
 
     def __getstate__(self) -> dict[str, object]:
         # closures over the network: rebuilt from the copied actor after a copy or pickle
-        drop = ("_params_fn", "_slots", "_tight", "_tight_key")
+        drop = ("_params_fn", "_tight")
         return {k: v for k, v in self.__dict__.items() if k not in drop}
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
-        self._slots, self._tight, self._tight_key = None, None, None
+        self._tight = None
         self._params_fn = self._make_params_fn(list(self.actor.module[:-1]))
 
     def _make_params_fn(
@@ -174,55 +114,24 @@ class ActorSampler:
     def tight_params(self) -> tuple[ParamsFn, torch.Tensor | None] | None:
         """A tensor-only ``obs [N, d] -> (loc, scale)`` for the current weights, for hot loops.
 
-        Available (else ``None``) when the parameter network is a plain ``Sequential`` (or
-        torchrl ``MLP``, or :class:`~torchrl_mbmf.modules.actors.TanhLoc`) chain: its linear
-        layers become single ``addmm`` calls on the live weights, with the same values as the
-        network itself. When the chain ends with an
-        :class:`~tensordict.nn.AddStateIndependentNormalScale`, the scale does not depend on
-        the observation: it is computed once here and returned as the second element
-        (shape ``[action_dim]``, broadcastable), and the function's ``scale`` is that same
-        tensor. Build it once per plan: it reads the weights live, but the constant scale is
-        a snapshot.
+        See :class:`~torchrl_mbmf.modules.planners.actor_params.TightParams`: ``None`` unless
+        the parameter network is a plain chain and the distribution is sampled here.
 
         Returns:
             ``(params_fn, constant_scale)`` or ``None``.
         """
         if self._net is None or not self._fast:
             return None
-        key = self._version_key()
-        if key != self._tight_key:
-            self._tight = self._build_tight()
-            self._tight_key = key
-        return self._tight
-
-    def _version_key(self) -> tuple[tuple[int, int, int], ...]:
-        # the chain holds the live weights; it is rebuilt when a tensor is replaced or moved,
-        # and when one changes in place (the constant scale is a snapshot)
-        if self._slots is None:
-            self._slots = tensor_slots(self._net)
-        return slot_versions(self._slots)
-
-    def _build_tight(self) -> tuple[ParamsFn, torch.Tensor | None]:
-        layers = _flat_layers(self._net)
-        head = layers[-1]
-        if type(head) is AddStateIndependentNormalScale and len(head.scale_shape) == 1:
-            body = _chain(layers[:-1])
-            scale = head(head.state_independent_scale.detach())[1]
-
-            def constant_scale(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-                return body(obs), scale
-
-            return constant_scale, scale
-        chain = _chain(layers)
-
-        def params(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            loc, scale = chain(obs)
-            return loc, scale
-
-        return params, None
+        if self._tight is None:
+            self._tight = TightParams(self._net)
+        return self._tight()
 
     def sample_params(
-        self, loc: torch.Tensor, scale: torch.Tensor, out: torch.Tensor | None = None
+        self,
+        loc: torch.Tensor,
+        scale: torch.Tensor,
+        out: torch.Tensor | None = None,
+        noise: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """One action per row of ``loc``, drawn as :meth:`sample` draws it (same numbers).
 
@@ -230,11 +139,18 @@ class ActorSampler:
             loc: the distribution's location ``[..., action_dim]`` (not modified).
             scale: its scale, any tensor broadcastable to ``loc``.
             out: where to write the actions (any strides). Defaults to a new tensor.
+            noise: a buffer shaped like ``loc`` for the draw (the same numbers as a fresh
+                one; used for a contiguous ``loc``). Defaults to a new tensor.
         """
-        x = torch.randn_like(loc)  # (``torch.normal`` is the same draw but slower: it checks std)
-        x.mul_(scale).add_(loc)
+        if noise is not None and loc.is_contiguous() and noise.shape == loc.shape:
+            x = noise.normal_()  # what ``randn_like`` runs on its fresh tensor
+        else:
+            x = torch.randn_like(loc)  # (``torch.normal``: the same draw, slower: checks std)
         if self.distribution_class is not TanhNormal:
-            return x if out is None else out.copy_(x)
+            if out is None:
+                return x.mul_(scale).add_(loc)
+            return torch.mul(x, scale, out=out).add_(loc)  # elementwise: the same values
+        x.mul_(scale).add_(loc)
         x = x.tanh_() if out is None else torch.tanh(x, out=out)
         eps = torch.finfo(x.dtype).resolution
         x.clamp_(-1 + eps, 1 - eps)
@@ -282,11 +198,13 @@ class ActorSampler:
             >>> from torchrl_mbmf.modules import make_ppo_actor_critic
             >>> from torchrl_mbmf.modules.planners.sampling import ActorSampler
             >>> actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
-            >>> action, (loc, scale) = ActorSampler(actor).sample_with_params(torch.zeros(3))
-            >>> action.shape, loc.shape
-            (torch.Size([1]), torch.Size([1]))
+            >>> ActorSampler(actor).sample_with_params(torch.zeros(3))[0].shape
+            torch.Size([1])
         """
-        params = tuple(self._params_fn(observation))
+        # without autograd, the tight chain: the network's own ops on the same shape
+        params = None if torch.is_grad_enabled() else self._tight_at(observation, flat=False)
+        if params is None:
+            params = tuple(self._params_fn(observation))
         return self._sample(params), params
 
     def _sample(self, params: tuple[torch.Tensor, ...]) -> torch.Tensor:
@@ -307,10 +225,8 @@ class ActorSampler:
     def log_prob(self, observation: torch.Tensor, action: torch.Tensor) -> dict[str, torch.Tensor]:
         """Distribution parameters at ``observation`` and the log-prob of ``action`` under them.
 
-        For :class:`~torchrl.modules.TanhNormal` (without ``tanh_loc``) and
-        :class:`~torchrl.modules.IndependentNormal` the log-prob is computed in closed form,
-        step for step as the distributions compute it (equal to float rounding, without
-        building the distribution objects); other distributions use their ``log_prob``.
+        In closed form where :attr:`closed_form_log_prob` (see
+        :func:`~torchrl_mbmf.modules.planners.actor_params.normal_log_prob`).
         """
         params = self._tight_at(observation)
         if params is None:
@@ -322,16 +238,18 @@ class ActorSampler:
             out["log_prob"] = self.distribution(*params).log_prob(action)
         return out
 
-    def _tight_at(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """``(loc, scale)`` at ``observation`` (any batch shape) through the tight chain."""
+    def _tight_at(
+        self, observation: torch.Tensor, flat: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        # (loc, scale) through the tight chain: the rows as one 2-d batch, or the own shape
         tight = self.tight_params()
         if tight is None:
             return None
         fn, constant = tight
-        loc, scale = fn(observation.reshape(-1, observation.shape[-1]))
+        loc, scale = fn(observation.reshape(-1, observation.shape[-1]) if flat else observation)
         loc = loc.view(*observation.shape[:-1], loc.shape[-1])
-        if constant is not None:
-            return loc, constant.expand_as(loc).contiguous()
+        if constant is not None:  # a fresh tensor, as the network's own scale
+            return loc, constant.expand_as(loc).clone()
         return loc, scale.reshape(loc.shape)
 
     def log_prob_params(
@@ -343,17 +261,7 @@ class ActorSampler:
         """
         if not self.closed_form_log_prob:
             return self.distribution(loc, scale).log_prob(action)
-        log_prob = 0.0
-        y = action
+        squash = None
         if self.distribution_class is TanhNormal:
-            if self._affine:  # the inverse of ``mid + half * x`` and its log-Jacobian
-                half = self._half.to(y)
-                y = (y - self._mid.to(y)) / half
-                log_prob = log_prob - half.abs().log().expand_as(y).sum(-1)
-            lim = 1.0 - torch.finfo(y.dtype).resolution
-            x = y.clamp(-lim, lim).atanh()
-            log_det = 2.0 * (math.log(2.0) - x - nn.functional.softplus(-2.0 * x))
-            log_prob = log_prob - log_det.sum(-1)
-            y = x
-        normal = -((y - loc) ** 2) / (2 * scale**2) - scale.log() - _LOG_SQRT_2PI
-        return log_prob + normal.sum(-1)
+            squash = (self._mid, self._half) if self._affine else ()
+        return normal_log_prob(action, loc, scale, squash)
