@@ -31,6 +31,16 @@ _Q_DISTANCE_GRADS: dict[str, Callable[[Tensor], Tensor]] = {
 }
 
 
+def _q_distance(name: str) -> tuple[Callable[..., Tensor], Callable[[Tensor], Tensor]]:
+    """The distance ``SACLoss(loss_function=name)`` computes and its derivative."""
+    if name not in _Q_DISTANCES:
+        raise ValueError(
+            f"FusedSACUpdate supports SACLoss(loss_function=...) in {sorted(_Q_DISTANCES)}; "
+            f"got {name!r} (use the stock update for it)"
+        )
+    return _Q_DISTANCES[name], _Q_DISTANCE_GRADS[name]
+
+
 def sac_update_step(
     loss: SACLoss, optimizer: torch.optim.Optimizer, target_updater: SoftUpdate
 ) -> Callable[[TensorDictBase], dict[str, Tensor]]:
@@ -77,13 +87,12 @@ def sac_update_step(
 class FusedSACUpdate:
     """The ``SACLoss`` update in plain tensor operations, the Q-ensemble as batched matmuls.
 
-    The losses of the stock :class:`~torchrl.objectives.SACLoss` (version 2) on the loss's
-    own parameters, so the optimiser, the soft target update and checkpoints are shared with
-    the stock path. :meth:`update` writes both networks' backward by hand; :meth:`losses` is
-    the same math through autograd. Random draws follow the stock order; tested equal to
-    ``SACLoss``. Supports the networks of
-    :func:`~torchrl_mbmf.modules.make_sac_actor_critic`. Why and how:
-    ``docs/design/fused_updates.md``.
+    The losses of the stock :class:`~torchrl.objectives.SACLoss` (version 2, its Q distance
+    ``smooth_l1``, ``l2`` or ``l1``) on the loss's own parameters, so the optimiser, the soft
+    target update and checkpoints are shared with the stock path. :meth:`update` writes both
+    networks' backward by hand; :meth:`losses` is the same math through autograd; random
+    draws follow the stock order; tested equal to ``SACLoss`` on the networks of
+    :func:`~torchrl_mbmf.modules.make_sac_actor_critic`. See ``docs/design/fused_updates.md``.
 
     Args:
         loss: the ``SACLoss`` (built with ``num_qvalue_nets`` Q-networks, no value network).
@@ -124,13 +133,7 @@ class FusedSACUpdate:
     ) -> None:
         if getattr(loss, "_version", 2) != 2:
             raise ValueError("FusedSACUpdate supports SACLoss without a value network (v2)")
-        if loss.loss_function not in _Q_DISTANCES:
-            raise ValueError(
-                f"FusedSACUpdate supports SACLoss(loss_function=...) in {sorted(_Q_DISTANCES)}; "
-                f"got {loss.loss_function!r} (use the stock update for it)"
-            )
-        self._distance = _Q_DISTANCES[loss.loss_function]
-        self._distance_grad = _Q_DISTANCE_GRADS[loss.loss_function]
+        self._distance, self._distance_grad = _q_distance(loss.loss_function)
         self.loss = loss
         self.optimizer = optimizer
         self.target_updater = target_updater
