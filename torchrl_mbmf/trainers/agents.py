@@ -277,9 +277,10 @@ class SACAgent:
         gamma: discount.
         tau: soft target update rate.
         alpha_init: initial entropy coefficient.
-        loss_function: ``SACLoss``'s Q-regression distance, ``"smooth_l1"`` (torchrl's
-            default) or ``"l2"`` (Stable-Baselines3's squared error). Defaults to
-            ``"smooth_l1"``.
+        loss_function: ``SACLoss``'s Q-regression distance, ``"l2"`` (the squared error of
+            SAC's paper and Stable-Baselines3; ``configs/algo/sac.yaml``) or ``"smooth_l1"``
+            (torchrl's default). Defaults to ``"smooth_l1"``, what a config without the key
+            means.
         refit_every_steps: ``sac_mpc``'s world-model refit period in real steps (read by the
             :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule`).
         update: ``"fused"`` or ``"stock"``. Defaults to ``"stock"``.
