@@ -70,6 +70,9 @@ COMPACT_CHECKPOINT_BYTES = 20 * 2**20
 #: 17.2 ms per gradient step alone on a core (a 16,000-step run, 11,000 gradient steps, on
 #: 2026-12-02), so about 57 min for 2e5 steps, with a margin.
 AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac": 70, "sac_mpc": 100}
+#: The budgets (real steps) those minutes are for: the thesis' (1e6 for PPO, 2e5 for SAC); a
+#: run of another budget is expected to take proportionally as long.
+AT_RISK_STEPS = {"sb3_ppo": 1_000_000, "sb3_sac": 200_000, "sac": 200_000, "sac_mpc": 200_000}
 #: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
 #: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
 #: run whose at-risk part is longer can finish only across sessions that keep one machine.
@@ -209,14 +212,18 @@ def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
         >>> run = QueuedRun("r", "train", ("method=sac", "total_steps=200000"))
         >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=150_000) / 60
         (70.0, 17.5)
+        >>> at_risk_seconds(QueuedRun("r", "train", ("method=sac", "total_steps=100000"))) / 60
+        35.0
     """
     overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
     method = str(overrides.get("method", "ppo_mpc"))
+    key = method if run.resumable else f"sb3_{method}"
+    scale = budget(run) / AT_RISK_STEPS[key] if key in AT_RISK_STEPS else 1.0
     if not run.resumable:
-        return 60.0 * AT_RISK_MIN.get(f"sb3_{method}", 120)
+        return 60.0 * AT_RISK_MIN.get(key, 120) * scale
     if method in ("mpc", "ppo_mpc"):
         return 0.0
-    minutes, risky_steps = AT_RISK_MIN.get(method, 180), budget(run)
+    minutes, risky_steps = AT_RISK_MIN.get(method, 180) * scale, budget(run)
     left = max(0.0, 1.0 - done_steps / risky_steps) if risky_steps else 0.0
     return 60.0 * minutes * left
 
@@ -661,8 +668,8 @@ def parse_stop_at(text: str, now: dt.datetime) -> dt.datetime:
 
     Examples:
         >>> import datetime as dt
-        >>> now = dt.datetime(2026, 12, 3, 9, 46, tzinfo=dt.UTC)
-        >>> parse_stop_at("09:45", now).day, parse_stop_at("01:00", now).day
+        >>> now = dt.datetime(2026, 12, 3, 23, 30, tzinfo=dt.UTC)
+        >>> parse_stop_at("23:29", now).day, parse_stop_at("01:00", now).day
         (3, 4)
     """
     hour, minute = (int(x) for x in text.split(":"))

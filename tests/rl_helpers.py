@@ -72,6 +72,7 @@ def make_test_sac_loss(
     action_dim: int = 2,
     hidden: int = 16,
     activation: type[nn.Module] = nn.Tanh,
+    loss_function: str = "smooth_l1",
 ) -> tuple[SACLoss, TensorDictBase]:
     """A small ``SACLoss`` and a random replay batch, for examples and tests.
 
@@ -82,6 +83,7 @@ def make_test_sac_loss(
         hidden: hidden width (two layers). Defaults to 16.
         activation: hidden activation of both networks. Defaults to :class:`torch.nn.Tanh`
             (``MLP``'s default; the training networks use :class:`torch.nn.ReLU`).
+        loss_function: ``SACLoss``'s Q distance. Defaults to ``"smooth_l1"`` (its default).
 
     Returns:
         ``(loss, batch)``.
@@ -123,7 +125,7 @@ def make_test_sac_loss(
         ),
         in_keys=["observation", "action"],
     )
-    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=spec)
+    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=spec, loss_function=loss_function)
     loss.make_value_estimator(gamma=0.99)
     b = batch_size
     batch = TensorDict(

@@ -20,10 +20,14 @@ def _fused_losses(fused: FusedSACUpdate, batch):
     )
 
 
+@pytest.mark.parametrize("loss_function", ["smooth_l1", "l2", "l1"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_fused_losses_and_grads_match_sacloss(seed):
+def test_fused_losses_and_grads_match_sacloss(seed, loss_function):
     torch.manual_seed(seed)
-    loss, batch = make_test_sac_loss(batch_size=64, obs_dim=5, action_dim=3, hidden=32)
+    loss, batch = make_test_sac_loss(
+        batch_size=64, obs_dim=5, action_dim=3, hidden=32, loss_function=loss_function
+    )
+    batch["next", "reward"] *= 3.0  # TD errors on both sides of smooth_l1's kink
     with torch.no_grad():
         loss.log_alpha.fill_(-0.7)
     fused = FusedSACUpdate(loss, torch.optim.Adam(loss.parameters()), SoftUpdate(loss, tau=0.1))
@@ -58,6 +62,13 @@ def test_fused_updates_track_stock_updates():
         torch.testing.assert_close(stock[key], fused[key], rtol=1e-4, atol=1e-5)
 
 
+def test_fused_rejects_an_unsupported_q_distance():
+    loss, _ = make_test_sac_loss()
+    loss.loss_function = "huber"
+    with pytest.raises(ValueError, match=r"loss_function.*'huber'"):
+        FusedSACUpdate(loss, torch.optim.Adam(loss.parameters()), SoftUpdate(loss, tau=0.1))
+
+
 def test_fused_rejects_unsupported_q_network():
     loss, _ = make_test_sac_loss()
     loss.qvalue_network.module = torch.nn.Sequential(torch.nn.BatchNorm1d(4))
@@ -75,14 +86,21 @@ def _batch_args(batch):
     )
 
 
+@pytest.mark.parametrize("loss_function", ["smooth_l1", "l2", "l1"])
 @pytest.mark.parametrize("activation", [torch.nn.ReLU, torch.nn.Tanh, torch.nn.ELU])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_fused_update_gradients_match_sacloss(activation, seed):
+def test_fused_update_gradients_match_sacloss(activation, seed, loss_function):
     """The hand-written Q backward + autograd actor give SACLoss' losses and gradients."""
     torch.manual_seed(seed)
     loss, batch = make_test_sac_loss(
-        batch_size=64, obs_dim=5, action_dim=3, hidden=32, activation=activation
+        batch_size=64,
+        obs_dim=5,
+        action_dim=3,
+        hidden=32,
+        activation=activation,
+        loss_function=loss_function,
     )
+    batch["next", "reward"] *= 3.0  # TD errors on both sides of smooth_l1's kink
     with torch.no_grad():
         loss.log_alpha.fill_(-0.7)
     params = list(loss.parameters())

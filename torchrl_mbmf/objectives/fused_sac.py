@@ -17,6 +17,28 @@ from torchrl_mbmf.modules.mlp import activate, affine
 __all__ = ["FusedSACUpdate", "sac_update_step"]
 
 _LOG2 = float(torch.log(torch.tensor(2.0)))
+#: ``SACLoss(loss_function=...)`` values the fused update reproduces: each distance (as
+#: torchrl's ``distance_loss`` computes it) and its derivative in the prediction error.
+_Q_DISTANCES: dict[str, Callable[..., Tensor]] = {
+    "smooth_l1": F.smooth_l1_loss,
+    "l2": F.mse_loss,
+    "l1": F.l1_loss,
+}
+_Q_DISTANCE_GRADS: dict[str, Callable[[Tensor], Tensor]] = {
+    "smooth_l1": lambda d: d.clamp(-1.0, 1.0),  # beta = 1: the clipped difference
+    "l2": lambda d: 2.0 * d,
+    "l1": torch.sign,
+}
+
+
+def _q_distance(name: str) -> tuple[Callable[..., Tensor], Callable[[Tensor], Tensor]]:
+    """The distance ``SACLoss(loss_function=name)`` computes and its derivative."""
+    if name not in _Q_DISTANCES:
+        raise ValueError(
+            f"FusedSACUpdate supports SACLoss(loss_function=...) in {sorted(_Q_DISTANCES)}; "
+            f"got {name!r} (use the stock update for it)"
+        )
+    return _Q_DISTANCES[name], _Q_DISTANCE_GRADS[name]
 
 
 def sac_update_step(
@@ -65,13 +87,12 @@ def sac_update_step(
 class FusedSACUpdate:
     """The ``SACLoss`` update in plain tensor operations, the Q-ensemble as batched matmuls.
 
-    The losses of the stock :class:`~torchrl.objectives.SACLoss` (version 2) on the loss's
-    own parameters, so the optimiser, the soft target update and checkpoints are shared with
-    the stock path. :meth:`update` writes both networks' backward by hand; :meth:`losses` is
-    the same math through autograd. Random draws follow the stock order; tested equal to
-    ``SACLoss``. Supports the networks of
-    :func:`~torchrl_mbmf.modules.make_sac_actor_critic`. Why and how:
-    ``docs/design/fused_updates.md``.
+    The losses of the stock :class:`~torchrl.objectives.SACLoss` (version 2, its Q distance
+    ``smooth_l1``, ``l2`` or ``l1``) on the loss's own parameters, so the optimiser, the soft
+    target update and checkpoints are shared with the stock path. :meth:`update` writes both
+    networks' backward by hand; :meth:`losses` is the same math through autograd; random
+    draws follow the stock order; tested equal to ``SACLoss`` on the networks of
+    :func:`~torchrl_mbmf.modules.make_sac_actor_critic`. See ``docs/design/fused_updates.md``.
 
     Args:
         loss: the ``SACLoss`` (built with ``num_qvalue_nets`` Q-networks, no value network).
@@ -112,6 +133,7 @@ class FusedSACUpdate:
     ) -> None:
         if getattr(loss, "_version", 2) != 2:
             raise ValueError("FusedSACUpdate supports SACLoss without a value network (v2)")
+        self._distance, self._distance_grad = _q_distance(loss.loss_function)
         self.loss = loss
         self.optimizer = optimizer
         self.target_updater = target_updater
@@ -181,7 +203,7 @@ class FusedSACUpdate:
             next_value = (next_q - alpha * next_log_prob).min(0).values
             target = reward + self.gamma * (~terminated).to(reward.dtype) * next_value
         pred = _q_ensemble(self._q_params, obs, action)
-        loss_qvalue = F.smooth_l1_loss(pred, target.expand_as(pred), reduction="none")
+        loss_qvalue = self._distance(pred, target.expand_as(pred), reduction="none")
         loss_qvalue = loss_qvalue.sum(0).mean()
         new_action, log_prob = self._sample(obs)
         q_pi = _q_ensemble(self._q_detached, obs, new_action).min(0).values
@@ -255,12 +277,12 @@ class FusedSACUpdate:
             q, outs, pres = _mlp_forward(self._q_linear, acts, x)
             q = q.squeeze(-1)
             diff = q[:, :batch] - target
-            loss_qvalue = F.smooth_l1_loss(diff, torch.zeros_like(diff), reduction="none")
+            loss_qvalue = self._distance(diff, torch.zeros_like(diff), reduction="none")
             loss_qvalue = loss_qvalue.sum(0).mean()
             q_pi, argmin = q[:, batch:].min(0)
             scale = 1.0 / batch
             grad = torch.zeros_like(q)
-            grad[:, :batch] = diff.clamp(-1.0, 1.0).mul_(scale)
+            grad[:, :batch] = self._distance_grad(diff).mul_(scale)
             grad[:, batch:].scatter_(0, argmin.unsqueeze(0), -scale)
             q_grads, action_grad = _mlp_backward(
                 self._q_linear, acts, x, outs, pres, grad.unsqueeze(-1), batch, obs.shape[-1]

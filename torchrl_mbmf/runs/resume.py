@@ -152,7 +152,11 @@ def check_resume_budget(real_steps: int, config: Mapping[str, Any], checkpoint: 
 
 
 #: Settings added after runs were written, with the value a config without them means.
-IMPLIED_DEFAULTS: dict[str, Any] = {"restart": False, "world_model.learn_termination": False}
+IMPLIED_DEFAULTS: dict[str, Any] = {
+    "restart": False,
+    "world_model.learn_termination": False,
+    "sac.loss_function": "smooth_l1",
+}
 
 
 def flatten_settings(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -33,6 +33,7 @@ from torchrl_mbmf.trainers.settings import GroupSettings
 __all__ = [
     "DISTRIBUTIONS",
     "PPO_UPDATES",
+    "SAC_Q_DISTANCES",
     "SAC_UPDATES",
     "Agent",
     "PPOAgent",
@@ -46,6 +47,8 @@ DISTRIBUTIONS: tuple[str, ...] = ("tanh_normal", "normal")
 PPO_UPDATES: tuple[str, ...] = ("fused", "fused_autograd", "stock")
 #: SAC update paths (``sac.update``).
 SAC_UPDATES: tuple[str, ...] = ("fused", "stock")
+#: ``sac.loss_function`` values: ``SACLoss``'s Q distances, both reproduced by the fused update.
+SAC_Q_DISTANCES: tuple[str, ...] = ("smooth_l1", "l2")
 
 
 @runtime_checkable
@@ -274,6 +277,10 @@ class SACAgent:
         gamma: discount.
         tau: soft target update rate.
         alpha_init: initial entropy coefficient.
+        loss_function: ``SACLoss``'s Q-regression distance, ``"l2"`` (the squared error of
+            SAC's paper and Stable-Baselines3; ``configs/algo/sac.yaml``) or ``"smooth_l1"``
+            (torchrl's default). Defaults to ``"smooth_l1"``, what a config without the key
+            means.
         refit_every_steps: ``sac_mpc``'s world-model refit period in real steps (read by the
             :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule`).
         update: ``"fused"`` or ``"stock"``. Defaults to ``"stock"``.
@@ -300,7 +307,7 @@ class SACAgent:
         positive=("utd_ratio", "lr", "alpha_init"),
         unit=("gamma", "tau"),
         sizes=("hidden_sizes",),
-    ) | {"update": choice(*SAC_UPDATES)}
+    ) | {"update": choice(*SAC_UPDATES), "loss_function": choice(*SAC_Q_DISTANCES)}
 
     def __init__(
         self,
@@ -319,6 +326,7 @@ class SACAgent:
         alpha_init: float,
         refit_every_steps: int,
         update: str = "stock",
+        loss_function: str = "smooth_l1",
     ) -> None:
         check_arguments(self.ARGUMENTS, locals())
         self.frames_per_batch, self.refit_every_steps = frames_per_batch, refit_every_steps
@@ -332,6 +340,7 @@ class SACAgent:
             self.critic,
             num_qvalue_nets=2,
             alpha_init=float(alpha_init),
+            loss_function=loss_function,
             action_spec=env.full_action_spec_unbatched[env.action_key],
         )
         self.loss.to(device)

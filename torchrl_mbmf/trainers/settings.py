@@ -180,6 +180,7 @@ class SACSettings(GroupSettings):
         alpha_init: initial temperature.
         refit_every_steps: ``sac_mpc``'s refit period in real steps.
         update: the update path. Defaults to ``"stock"``.
+        loss_function: the Q-regression distance. Defaults to ``"smooth_l1"``.
         target: see :class:`GroupSettings`.
         extra: see :class:`GroupSettings`.
 
@@ -202,6 +203,7 @@ class SACSettings(GroupSettings):
     alpha_init: float
     refit_every_steps: int
     update: str = "stock"
+    loss_function: str = "smooth_l1"
 
 
 @dataclass(frozen=True, kw_only=True)

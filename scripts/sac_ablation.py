@@ -1,0 +1,88 @@
+"""The SAC ablation table: our SAC's variants beside Stable-Baselines3's SAC at fixed real steps.
+
+    python scripts/sac_ablation.py                   # prints the table, writes the JSON
+
+Reads the committed run folders (``results/hybrid/runs``: the ablation; ``results/thesis/runs``:
+the default SAC and SB3's SAC with the same settings) through :mod:`torchrl_mbmf.analysis` and
+reports, per variant and seed, the mean training return of the last 10 episodes and the latest
+deterministic evaluation at or before each step (the thesis runs evaluated one episode every
+20,480 steps, the ablation ten every 10,000: their evaluation columns are not comparable, the
+training column is). Writes ``results/hybrid/sac_ablation.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from torchrl_mbmf.analysis.runs import Run, load_runs
+
+ROOT = Path(__file__).resolve().parents[1]
+#: ``<label>: run-name pattern`` (the seed is the name's last part).
+VARIANTS = {
+    "ours: smooth_l1, 1000 updates per 1000 steps (default)": r"__sac__default__h10__seed\d$",
+    "ours: l2, 1000 per 1000": r"__sac__l2__fpb1000__seed\d$",
+    "ours: l2, 50 per 50": r"__sac__l2__fpb50__seed\d$",
+    "ours: smooth_l1, 50 per 50": r"__sac__smoothl1__fpb50__seed\d$",
+    "SB3 SAC (squared error, 1 per step)": r"__sb3_sac__default__seed\d$",
+}
+
+
+def value_at(run: Run, scalar: str, step: int) -> float | None:
+    """The last value of ``scalar`` logged at or before ``step`` (``None`` if none or short).
+
+    Args:
+        run: the run.
+        scalar: the scalar's name.
+        step: the real step.
+    """
+    steps, values = run.scalar(scalar)
+    if run.last_step < step or not (steps <= step).any():
+        return None
+    return float(values[steps <= step][-1])
+
+
+def main() -> None:
+    """Command line."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, nargs="+", default=[50_000])
+    parser.add_argument("--out", type=Path, default=ROOT / "results/hybrid/sac_ablation.json")
+    args = parser.parse_args()
+    runs = load_runs([ROOT / "results/hybrid/runs", ROOT / "results/thesis/runs"])
+    table: dict[str, dict] = {}
+    for label, pattern in VARIANTS.items():
+        chosen = [r for r in runs if re.search(pattern, r.name)]
+        rows = {}
+        for step in args.steps:
+            train = [value_at(r, "train/return_last10_mean", step) for r in chosen]
+            evals = [value_at(r, "eval/return", step) for r in chosen]
+            rows[str(step)] = {
+                "seeds": [r.seed for r in chosen],
+                "train_last10": train,
+                "eval": evals,
+                "commits": sorted({r.commit for r in chosen}),
+            }
+        table[label] = rows
+    for step in args.steps:
+        print(
+            f"\n| variant (HalfCheetah-v5, {step:,} real steps) | seeds | last-10 training "
+            "return per seed | mean | latest evaluation per seed |"
+        )
+        print("|---|---|---|---|---|")
+        for label, rows in table.items():
+            row = rows[str(step)]
+            train = [v for v in row["train_last10"] if v is not None]
+            fmt = ", ".join("n/a" if v is None else f"{v:,.0f}" for v in row["train_last10"])
+            ev = ", ".join("n/a" if v is None else f"{v:,.0f}" for v in row["eval"])
+            mean = f"{np.mean(train):,.0f}" if train else "n/a"
+            print(f"| {label} | {row['seeds']} | {fmt} | {mean} | {ev} |")
+    args.out.write_text(json.dumps(table, indent=1) + "\n")
+    print(f"\nwrote {args.out.relative_to(ROOT)}")
+
+
+if __name__ == "__main__":
+    main()
