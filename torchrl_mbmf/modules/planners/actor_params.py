@@ -36,9 +36,9 @@ def _flat_layers(net: nn.Module) -> list[nn.Module]:
 def _chain(layers: list[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor]:
     """``layers`` run in turn as plain ops on the live weights (:func:`run_plain`).
 
-    The modules' own ops on any input shape: ``nn.Linear`` on a 2-d input is
-    ``addmm(b, x, W.t())`` (else ``linear``), a ReLU or Tanh right after it runs in place on
-    that fresh output; other modules are called as they are.
+    Values equal the modules' own: ``nn.Linear`` on a 2-d input is ``addmm(b, x, W.t())``, a
+    ReLU or Tanh right after it runs in place on that fresh output; other modules are called
+    as they are.
     """
     return functools.partial(run_plain, plain_layers(layers))
 
