@@ -39,7 +39,7 @@ def _compose(*overrides: str):
             "sac.batch_size=512 is larger than sac.replay_size=300",
         ),
         (
-            ["method=sac", "sac.replay_size=500"],
+            ["method=sac", "sac.frames_per_batch=1000", "sac.replay_size=500"],
             "sac.replay_size=500 is smaller than sac.frames_per_batch=1000",
         ),
         (
@@ -135,6 +135,8 @@ def test_a_run_folder_config_from_before_targets_validates_and_resumes(tmp_path)
     old = OmegaConf.load(Path(__file__).parent / "data" / "config_before_targets.yaml")
     assert "_target_" not in old.planner
     command = ["method=sac_mpc", "planner.horizon=10", "reward=head_pen", "seed=2"]
+    # the campaign's SAC settings, the defaults before the SAC ablation changed them
+    command += ["sac.frames_per_batch=1000", "sac.loss_function=smooth_l1"]
     now = _compose(*command, "budget=thesis", "threads=1", "progress=false")
     validate_train_config(old)
     assert resume_changes(flatten_config(old), flatten_config(now)) == ({}, {})
@@ -222,3 +224,17 @@ def test_a_run_dir_that_cannot_be_created_or_written_is_refused(tmp_path, monkey
     monkeypatch.setattr(claim.os, "access", lambda path, mode: False)
     with pytest.raises(claim.RunFolderError, match=r"run' is not writable"):
         build_for_checks(cfg, tmp_path / "run")
+
+
+def test_a_ppo_run_resumes_across_a_change_of_the_sac_defaults():
+    """The policy group a method does not train is no change on resume (nothing builds it)."""
+    old = OmegaConf.load(Path(__file__).parent / "data" / "config_before_targets.yaml")
+    old.method = "ppo_mpc"
+    now = _compose("method=ppo_mpc", "planner.horizon=10", "reward=head_pen", "seed=2")
+    now.budget = old.budget
+    refused, _ = resume_changes(flatten_config(old), flatten_config(now))
+    assert not any(key.startswith("sac.") for key in refused)
+    now.sac.lr = 1.0
+    now.ppo.lr = 1.0
+    refused, _ = resume_changes(flatten_config(old), flatten_config(now))
+    assert "ppo.lr" in refused and "sac.lr" not in refused

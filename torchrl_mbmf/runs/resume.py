@@ -16,7 +16,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from torchrl_mbmf.checks import ConfigError
-from torchrl_mbmf.methods import MODEL_BASED, PPO_METHODS
+from torchrl_mbmf.methods import METHODS, MODEL_BASED, PPO_METHODS
 
 __all__ = [
     "DEFAULT_TARGETS",
@@ -78,18 +78,25 @@ def resume_changes(
         side has the value ``"<missing>"`` there, except a group's ``_target_``, which a
         config without one means to be the group's default builder
         (:data:`DEFAULT_TARGETS`). ``allowed`` holds the keys of
-        :data:`RESUME_SAFE_SETTINGS`.
+        :data:`RESUME_SAFE_SETTINGS`. The group of the policy family a run's method does not
+        train (``sac`` for the PPO methods, ``ppo`` for the SAC ones) is built by nothing, so
+        its settings are no change.
 
     Examples:
         >>> from torchrl_mbmf.runs.resume import resume_changes
         >>> resume_changes({"ppo.lr": 3e-4, "total_steps": 400},
         ...                {"ppo.lr": 0.01, "total_steps": 800})
         ({'ppo.lr': (0.0003, 0.01)}, {'total_steps': (400, 800)})
+        >>> resume_changes({"method": "ppo", "sac.lr": 3e-4}, {"method": "ppo", "sac.lr": 0.01})
+        ({}, {})
     """
     missing = "<missing>"
     refused: dict[str, tuple[Any, Any]] = {}
     allowed: dict[str, tuple[Any, Any]] = {}
+    unused = _unused_group(saved.get("method"), now.get("method"))
     for key in sorted(set(saved) | set(now)):
+        if unused is not None and key.startswith(unused):
+            continue
         old, new = saved.get(key, _implied(key, missing)), now.get(key, _implied(key, missing))
         if _same(old, new) or (key in SAME_WHEN and SAME_WHEN[key](old) == SAME_WHEN[key](new)):
             continue
@@ -197,6 +204,13 @@ def describe_refused(refused: Mapping[str, tuple[Any, Any]]) -> str:
         f"  was written with {key}={old!r}, this run has {key}={new!r}"
         for key, (old, new) in refused.items()
     )
+
+
+def _unused_group(saved_method: Any, method: Any) -> str | None:
+    """The key prefix of the policy group neither config's method trains (``None``: both)."""
+    if saved_method != method or method not in METHODS:
+        return None
+    return "sac." if method in PPO_METHODS else "ppo."
 
 
 def _implied(key: str, missing: str) -> Any:
