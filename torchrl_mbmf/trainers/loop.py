@@ -55,13 +55,9 @@ __all__ = [
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
 
-    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` and ``sac_mpc`` (thesis sections 5.1, 5.4): the
-    :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule` says which policy acts, the agent
-    learns from every batch, the hooks log, refit the model, evaluate and checkpoint. Every
-    real env step counts toward ``total_steps``. A new ``Trainer`` on the same ``run_dir``
-    resumes from its latest checkpoint and ends with the same weights as an uninterrupted
-    run (:class:`~torchrl_mbmf.runs.checkpoint.RunCheckpoint`). The methods and why
-    checkpoints end the episode in progress: ``docs/design/loop.md``.
+    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` or ``sac_mpc``; every real step counts toward
+    ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
+    checkpoint to the uninterrupted run's weights. How: ``docs/design/loop.md``.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -84,8 +80,7 @@ class Trainer:
     TIME_KEYS: tuple[str, ...] = ("env_s", "act_s", "update_s", "refit_s")
 
     def __init__(self, cfg: DictConfig, run_dir: Path) -> None:
-        # The config is validated and parsed once; the parts are built from the typed settings
-        # and nothing reads the raw config after this constructor.
+        # parsed once: nothing reads the raw config after this constructor
         self.config = config = TrainConfig.from_config(cfg)
         self.settings = settings = config.settings
         self.run_dir = Path(run_dir)
