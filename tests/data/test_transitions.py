@@ -319,3 +319,16 @@ def test_loaded_dataset_keeps_its_layout(tmp_path):
 def test_capacity_must_be_a_positive_integer(capacity):
     with pytest.raises(ValueError, match="capacity must be an integer >= 1"):
         TransitionDataset(META, capacity=capacity)
+
+
+def test_the_package_s_datasets_refuse_a_first_extend_of_another_state_size():
+    """``collect_random_transitions`` records the env's state shape; another size is refused."""
+    from torchrl_mbmf.envs import make_gym_state_env
+
+    env = make_gym_state_env("Pendulum-v1")
+    data = collect_random_transitions(env, 10, seed=0)
+    assert data.metadata["state_shape"] == [env.observation_spec["state"].shape[-1]]
+    other = collect_random_transitions(make_gym_state_env("InvertedPendulum-v5"), 10, seed=0)
+    fresh = type(data)(dict(data.metadata))
+    with pytest.raises(ValueError, match=r"state_shape=\[3\]"):
+        fresh.extend(other.tensors())

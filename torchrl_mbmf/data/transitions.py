@@ -364,7 +364,9 @@ def collect_random_transitions(
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
     if dataset is None:
-        dataset = TransitionDataset({**env_metadata(env), "seed": seed}, state_key=state_key)
+        shape = list(env.observation_spec[state_key].shape[-1:])
+        meta = {**env_metadata(env), "seed": seed, "state_shape": shape}
+        dataset = TransitionDataset(meta, state_key=state_key)
     n_envs = max(1, env.batch_size.numel())
     steps_per_env = -(-num_steps // n_envs)
     generator = torch.Generator()

@@ -346,7 +346,8 @@ class WorldModelPart:
         model_env = env_cls(self.model, env, termination_fn=self.termination)
         self.optim = torch.optim.Adam(self.model.parameters(), lr=float(lr))
         self.seed = int(seed)
-        self.dataset = TransitionDataset({**env_metadata(env), "seed": self.seed})
+        meta = {**env_metadata(env), "seed": self.seed, "state_shape": [self.model.state_dim]}
+        self.dataset = TransitionDataset(meta)
         # the agent's value: the planner's terminal value with planner.terminal_value=true
         value = agent.terminal_value()
         self.planner = planner(
