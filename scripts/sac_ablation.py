@@ -29,6 +29,8 @@ VARIANTS = {
     "ours: l2, 50 per 50": r"__sac__l2__fpb50__seed\d$",
     "ours: smooth_l1, 50 per 50": r"__sac__smoothl1__fpb50__seed\d$",
     "SB3 SAC (squared error, 1 per step)": r"__sb3_sac__default__seed\d$",
+    "ours, new defaults (l2, 50 per 50), runs to 1e5": r"__sac__l2__fpb50__1e5__seed\d$",
+    "SB3 SAC, runs to 1e5 (10 evaluation episodes)": r"__sb3_sac__default__1e5__seed\d$",
 }
 
 
@@ -56,6 +58,8 @@ def main() -> None:
     table: dict[str, dict] = {}
     for label, pattern in VARIANTS.items():
         chosen = [r for r in runs if re.search(pattern, r.name)]
+        if not chosen:
+            continue
         rows = {}
         for step in args.steps:
             train = [value_at(r, "train/return_last10_mean", step) for r in chosen]
