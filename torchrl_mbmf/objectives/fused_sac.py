@@ -12,7 +12,7 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import Tensor, nn
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from torchrl_mbmf.modules.mlp import activate, affine
+from torchrl_mbmf.modules.mlp import activate, affine, plain_layers
 
 __all__ = ["FusedSACUpdate", "sac_update_step"]
 
@@ -501,15 +501,7 @@ def _activations(layers: list[tuple[str, Any]]) -> list[Any]:
             f"FusedSACUpdate expects a Q-network of Linear layers with one activation between "
             f"consecutive ones, got layers {kinds}"
         )
-    acts: list[Any] = []
-    for _, module in layers[1::2]:
-        if type(module) is nn.ReLU:
-            acts.append("relu")
-        elif type(module) is nn.Tanh:
-            acts.append("tanh")
-        else:
-            acts.append(module)
-    return acts
+    return list(plain_layers([module for _, module in layers[1::2]]))
 
 
 def _q_layers(qvalue: nn.Module) -> list[tuple[str, Any]]:
