@@ -22,6 +22,7 @@ from torchrl_mbmf.envs.transforms.rewards import REWARDS
 from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
 from torchrl_mbmf.runs.resume import (
     DEFAULT_TARGETS,
+    OPTIONAL_GROUPS,
     RESUME_SAFE_SETTINGS,
     flatten_settings,
     resume_changes,
@@ -146,6 +147,8 @@ def train_setting_keys(cfg: Any) -> dict[str, bool]:
     """
     keys = {key: setting.required for key, setting in TRAIN_SETTINGS.items()}
     for group in DEFAULT_TARGETS:
+        if group not in cfg and group in OPTIONAL_GROUPS:
+            continue
         if group not in cfg:
             raise ConfigError(f"the {group} group is missing from the train config")
         names, required = group_keys(group_target(cfg, group))
@@ -225,8 +228,9 @@ def validate_train_config(cfg: Any) -> None:
         >>> try:
         ...     validate_train_config({"method": "dqn"})
         ... except ConfigError as err:
-        ...     print(err)
-        method='dqn' is not a method; allowed: ['ppo', 'mpc', 'ppo_mpc', 'sac', 'sac_mpc']
+        ...     print(err)  # doctest: +NORMALIZE_WHITESPACE
+        method='dqn' is not a method; allowed: ['ppo', 'mpc', 'ppo_mpc', 'sac', 'sac_mpc',
+        'sac_mbpo']
     """
     method = cfg["method"]
     if method not in METHODS:
@@ -244,6 +248,7 @@ def validate_train_config(cfg: Any) -> None:
     _check_budgets(cfg, method)
     _check_planner_variants(cfg, method)
     _check_world_model_variants(cfg, method)
+    _check_mbpo(cfg, method)
 
 
 def _check_env(env: Any) -> None:
@@ -365,13 +370,40 @@ def _check_planner_variants(cfg: Any, method: str) -> None:
         )
 
 
+def _check_mbpo(cfg: Any, method: str) -> None:
+    """``sac_mbpo``: a group ``mbpo``, rollouts at batch ends, and nothing that plans."""
+    if method != "sac_mbpo":
+        return
+    if "mbpo" not in cfg:
+        raise ConfigError("method=sac_mbpo needs the mbpo group (configs/mbpo/default.yaml)")
+    frames = _count(cfg["sac"]["frames_per_batch"])
+    for key in ("rollout_every", "refit_every"):
+        every = _count(cfg["mbpo"].get(key))
+        if frames and every and every % frames:
+            raise ConfigError(
+                f"mbpo.{key}={every} must be a multiple of sac.frames_per_batch={frames} "
+                "(rollouts and refits happen between collected batches)"
+            )
+    planner, wm = cfg["planner"], cfg["world_model"]
+    if planner.get("terminal_value", False) is True:
+        raise ConfigError(
+            "planner.terminal_value=true has no effect with method=sac_mbpo (nothing plans: "
+            "the actor acts); set planner.terminal_value=false"
+        )
+    if wm.get("adaptive_horizon", False) is True:
+        raise ConfigError(
+            "world_model.adaptive_horizon=true has no effect with method=sac_mbpo (its "
+            "rollouts have the fixed length mbpo.rollout_horizon); set it to false"
+        )
+
+
 def _check_world_model_variants(cfg: Any, method: str) -> None:
     wm = cfg["world_model"]
     members = _count(wm.get("ensemble_size", 1)) or 1
-    if members > 1 and method not in GUIDED:
+    if members > 1 and method not in (*GUIDED, "sac_mbpo"):
         raise ConfigError(
             f"world_model.ensemble_size={members} plans with the ensemble policy-guided planner; "
-            f"it needs method ppo_mpc or sac_mpc, got method={method!r}"
+            f"it needs method ppo_mpc or sac_mpc (or sac_mbpo), got method={method!r}"
         )
     if members > 1 and cfg["planner"].get("refinement"):
         raise ConfigError(
