@@ -29,6 +29,7 @@ from torchrl_mbmf.runs.resume import (
 )
 from torchrl_mbmf.trainers.components import group_keys, group_target
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
+from torchrl_mbmf.world_model.branched_rollouts import check_mbpo_config
 
 __all__ = [
     "METHODS",
@@ -248,7 +249,8 @@ def validate_train_config(cfg: Any) -> None:
     _check_budgets(cfg, method)
     _check_planner_variants(cfg, method)
     _check_world_model_variants(cfg, method)
-    _check_mbpo(cfg, method)
+    if method == "sac_mbpo":
+        check_mbpo_config(cfg)
 
 
 def _check_env(env: Any) -> None:
@@ -367,33 +369,6 @@ def _check_planner_variants(cfg: Any, method: str) -> None:
         raise ConfigError(
             f"planner.num_elites must be an integer in [1, planner.num_candidates={m}], "
             f"got {elites!r}"
-        )
-
-
-def _check_mbpo(cfg: Any, method: str) -> None:
-    """``sac_mbpo``: a group ``mbpo``, rollouts at batch ends, and nothing that plans."""
-    if method != "sac_mbpo":
-        return
-    if "mbpo" not in cfg:
-        raise ConfigError("method=sac_mbpo needs the mbpo group (configs/mbpo/default.yaml)")
-    frames = _count(cfg["sac"]["frames_per_batch"])
-    for key in ("rollout_every", "refit_every"):
-        every = _count(cfg["mbpo"].get(key))
-        if frames and every and every % frames:
-            raise ConfigError(
-                f"mbpo.{key}={every} must be a multiple of sac.frames_per_batch={frames} "
-                "(rollouts and refits happen between collected batches)"
-            )
-    planner, wm = cfg["planner"], cfg["world_model"]
-    if planner.get("terminal_value", False) is True:
-        raise ConfigError(
-            "planner.terminal_value=true has no effect with method=sac_mbpo (nothing plans: "
-            "the actor acts); set planner.terminal_value=false"
-        )
-    if wm.get("adaptive_horizon", False) is True:
-        raise ConfigError(
-            "world_model.adaptive_horizon=true has no effect with method=sac_mbpo (its "
-            "rollouts have the fixed length mbpo.rollout_horizon); set it to false"
         )
 
 

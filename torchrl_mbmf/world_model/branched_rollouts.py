@@ -15,7 +15,8 @@ Design: ``docs/design/mbpo.md``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
@@ -24,14 +25,59 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_mbmf.checks import Setting, check_arguments, settings
+from torchrl_mbmf.checks import ConfigError, Setting, check_arguments, settings
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.envs.terminations import TerminationFn
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 
-__all__ = ["BranchedRollouts", "RandomMemberEnv", "policy_as_planner"]
+__all__ = ["BranchedRollouts", "RandomMemberEnv", "check_mbpo_config", "policy_as_planner"]
+
+
+def check_mbpo_config(cfg: Mapping[str, Any]) -> None:
+    """Checks a ``sac_mbpo`` train config across groups.
+
+    The ``mbpo`` keys' own ranges are checked by :class:`BranchedRollouts`.
+
+    Args:
+        cfg: the composed train config (``sac``, ``mbpo``, ``planner`` and ``world_model``).
+
+    Raises:
+        ConfigError: naming the key: no ``mbpo`` group, a rollout or refit period that is no
+            multiple of ``sac.frames_per_batch``, or a planner or world-model option that has
+            no effect because nothing plans.
+
+    Examples:
+        >>> cfg = {"sac": {"frames_per_batch": 50}, "mbpo": {"rollout_every": 75},
+        ...        "planner": {}, "world_model": {}}
+        >>> try:
+        ...     check_mbpo_config(cfg)
+        ... except ValueError as err:
+        ...     print(str(err).split(" (")[0])
+        mbpo.rollout_every=75 must be a multiple of sac.frames_per_batch=50
+    """
+    if "mbpo" not in cfg:
+        raise ConfigError("method=sac_mbpo needs the mbpo group (configs/mbpo/default.yaml)")
+    frames = cfg["sac"]["frames_per_batch"]
+    for key in ("rollout_every", "refit_every"):
+        every = cfg["mbpo"].get(key)
+        ints = all(type(v) is int and v > 0 for v in (frames, every))
+        if ints and every % frames:
+            raise ConfigError(
+                f"mbpo.{key}={every} must be a multiple of sac.frames_per_batch={frames} "
+                "(rollouts and refits happen between collected batches)"
+            )
+    if cfg["planner"].get("terminal_value", False) is True:
+        raise ConfigError(
+            "planner.terminal_value=true has no effect with method=sac_mbpo (nothing plans: "
+            "the actor acts); set planner.terminal_value=false"
+        )
+    if cfg["world_model"].get("adaptive_horizon", False) is True:
+        raise ConfigError(
+            "world_model.adaptive_horizon=true has no effect with method=sac_mbpo (its "
+            "rollouts have the fixed length mbpo.rollout_horizon); set it to false"
+        )
 
 
 class RandomMemberEnv(EnsembleLearnedDynamicsEnv):
