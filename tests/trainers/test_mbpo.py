@@ -284,3 +284,16 @@ def test_train_recipe_runs_sac_mbpo(tmp_path, env):
     latest = sorted((run / "checkpoints").glob("checkpoint-*"))[-1]
     names = {p.name.split("-", 1)[1] for p in (latest / "components").iterdir()}
     assert {"replay", "model_replay", "dataset", "world_model"} <= names
+
+
+def test_runs_written_before_the_mbpo_group_resume_unchanged():
+    from torchrl_mbmf.runs.resume import resume_changes
+
+    mbpo = {"mbpo.real_ratio": 0.05, "mbpo.rollout_horizon": 1}
+    # a sac run written before the group existed: its keys are no change
+    old = {"method": "sac", "sac.lr": 3e-4}
+    assert resume_changes(old, {**old, **mbpo}) == ({}, {})
+    # a sac_mbpo run compares them like any setting
+    saved = {"method": "sac_mbpo", **mbpo}
+    refused, _ = resume_changes(saved, {**saved, "mbpo.real_ratio": 0.5})
+    assert refused == {"mbpo.real_ratio": (0.05, 0.5)}

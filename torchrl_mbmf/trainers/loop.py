@@ -56,7 +56,7 @@ __all__ = [
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
 
-    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` or ``sac_mpc``; every real step counts toward
+    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac``, ``sac_mpc`` or ``sac_mbpo``; every real step counts toward
     ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
     checkpoint to the uninterrupted run's weights. How: ``docs/design/loop.md``.
 
