@@ -56,8 +56,8 @@ __all__ = [
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
 
-    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac``, ``sac_mpc`` or ``sac_mbpo``; every real step counts toward
-    ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
+    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac``, ``sac_mpc`` or ``sac_mbpo``; every real step counts
+    toward ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
     checkpoint to the uninterrupted run's weights. How: ``docs/design/loop.md``.
 
     Args:
