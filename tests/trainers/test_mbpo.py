@@ -297,3 +297,35 @@ def test_runs_written_before_the_mbpo_group_resume_unchanged():
     saved = {"method": "sac_mbpo", **mbpo}
     refused, _ = resume_changes(saved, {**saved, "mbpo.real_ratio": 0.5})
     assert refused == {"mbpo.real_ratio": (0.05, 0.5)}
+
+
+@pytest.mark.parametrize("probabilistic", [False, True])
+def test_random_member_env_steps_a_random_member(probabilistic):
+    from torchrl_mbmf.world_model.branched_rollouts import RandomMemberEnv
+
+    torch.manual_seed(0)
+    real = make_env("Pendulum-v1", seed=0)
+    model = EnsembleDeltaDynamicsModel(
+        3, 1, num_members=3, hidden_sizes=(16,), probabilistic=probabilistic
+    )
+    env = RandomMemberEnv(model, real)
+    start = real.reset().expand(2000).clone()
+    start["action"] = torch.rand(2000, 1) * 4 - 2
+    torch.manual_seed(1)
+    out = env.step(start.clone())["next"]
+    torch.manual_seed(1)
+    members = torch.randint(0, 3, (2000,))
+    # the reference: each member's own prediction (real units), by the model's forward
+    each = [model(start["state"], start["action"], torch.full((2000,), k)) for k in range(3)]
+    expected = torch.stack([each[k][0] for k in range(3)])[members, torch.arange(2000)]
+    if not probabilistic:
+        assert torch.allclose(out["state"], expected, atol=1e-6)
+        assert members.unique().numel() == 3
+    else:
+        # sampled around the member's mean: not equal, but centred on it
+        noise = out["state"] - expected
+        assert not torch.allclose(out["state"], expected)
+        assert noise.mean(0).abs().lt(5 * noise.std(0) / 2000**0.5).all()
+    assert torch.equal(
+        out["disagreement"].squeeze(-1), model.disagreement(start["state"], start["action"])
+    )

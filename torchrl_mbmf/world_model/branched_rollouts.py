@@ -86,8 +86,10 @@ class RandomMemberEnv(EnsembleLearnedDynamicsEnv):
     MBPO's model: a step of batch element ``b`` is the prediction of a member drawn uniformly
     (``torch.randint`` on the global generator, so a seeded or resumed run draws the same
     ones), where :class:`~torchrl_mbmf.envs.EnsembleLearnedDynamicsEnv` cycles members by
-    position. Everything else (specs, terminations, observation, disagreement) is the
-    ensemble env's.
+    position; a probabilistic ensemble (``world_model.probabilistic``) samples that member's
+    Gaussian (its mean plus its standard deviation times ``torch.randn``, in scaled units), as
+    MBPO does, where the other learned envs step the mean. Everything else (specs,
+    terminations, observation, disagreement) is the ensemble env's.
 
     Args:
         world_model: the ensemble (``ensemble_size >= 2``).
@@ -115,6 +117,23 @@ class RandomMemberEnv(EnsembleLearnedDynamicsEnv):
     def _members_of(self, batch_size: torch.Size) -> torch.Tensor:
         k = self.dynamics.num_members
         return torch.randint(0, k, tuple(batch_size), device=self.device)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state, action = tensordict.get(self.state_key), tensordict.get(self.action_key)
+        members = self._members_of(tensordict.batch_size)
+        model = self.dynamics
+        mean, log_var = model.predict_scaled_members(state, action)  # [K, *B, d + 1]
+        index = members.unsqueeze(0).unsqueeze(-1).expand(1, *mean.shape[1:])
+        out = mean.gather(0, index).squeeze(0)
+        if log_var is not None:
+            std = (0.5 * log_var.gather(0, index).squeeze(0)).exp()
+            out = out + std * torch.randn_like(out)
+        next_state, reward = model.unscale(state, out)
+        terminated = self.terminated(next_state).unsqueeze(-1)
+        td = self._fill(next_state, tensordict.batch_size, terminated)
+        td.set(self.reward_key, reward)
+        td.set(self.disagreement_key, model.disagreement_of_scaled(mean).unsqueeze(-1))
+        return td
 
 
 def policy_as_planner(
