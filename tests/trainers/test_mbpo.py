@@ -226,7 +226,8 @@ def test_mbpo_group_values_are_refused_naming_the_key(tmp_path):
 
 def test_the_mbpo_run_name_names_its_variant():
     cfg = _config("experiment=hybrid_mbpo")
-    assert "__sac_mbpo__" in cfg.run_name and "__mbpo-H1-" in cfg.run_name
+    assert "__sac_mbpo__hybrid_mbpo__" in cfg.run_name and "__mbpo-H1-" in cfg.run_name
+    assert "__mbpo-H3-" in _config("experiment=hybrid_mbpo", "mbpo.rollout_horizon=3").run_name
     assert "__mbpo" not in _config("method=sac").run_name
 
 
