@@ -1,8 +1,9 @@
-"""Trains PPO, MPC, PPO-MPC, SAC or SAC-MPC (thesis sections 5, 6.3).
+"""Trains PPO, MPC, PPO-MPC, SAC or SAC-MPC (thesis sections 5, 6.3), or MBPO-style SAC.
 
     python recipes/train.py                                  # PPO-MPC, thesis settings
     python recipes/train.py method=sac_mpc reward=shin_pen seed=1
     python recipes/train.py env=hopper method=sac_mpc       # any task of configs/env
+    python recipes/train.py experiment=hybrid_mbpo          # method=sac_mbpo, its preset
     python recipes/train.py -m method=ppo,ppo_mpc seed=0,1,2
 Rerunning with the same run_dir resumes from its latest checkpoint; SIGTERM or Ctrl-C stops the
 run after its next checkpoint (a second one stops at once). A finished run is not trained over

@@ -68,11 +68,18 @@ COMPACT_CHECKPOINT_BYTES = 20 * 2**20
 #: it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for PPO, nor
 #: for MPC and PPO-MPC (their planning checkpoints are committed compacted). SB3 SAC:
 #: 17.2 ms per gradient step alone on a core (a 16,000-step run, 11,000 gradient steps, on
-#: 2026-12-02), so about 57 min for 2e5 steps, with a margin.
-AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac": 70, "sac_mpc": 100}
+#: 2026-12-02), so about 57 min for 2e5 steps, with a margin. sac_mbpo (its hybrid_mbpo
+#: preset): about 2.8-3.0 h projected for 1e5 steps (results/hybrid/mbpo_timing.md).
+AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac": 70, "sac_mpc": 100, "sac_mbpo": 190}
 #: The budgets (real steps) those minutes are for: the thesis' (1e6 for PPO, 2e5 for SAC); a
 #: run of another budget is expected to take proportionally as long.
-AT_RISK_STEPS = {"sb3_ppo": 1_000_000, "sb3_sac": 200_000, "sac": 200_000, "sac_mpc": 200_000}
+AT_RISK_STEPS = {
+    "sb3_ppo": 1_000_000,
+    "sb3_sac": 200_000,
+    "sac": 200_000,
+    "sac_mpc": 200_000,
+    "sac_mbpo": 100_000,
+}
 #: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
 #: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
 #: run whose at-risk part is longer can finish only across sessions that keep one machine.

@@ -11,9 +11,9 @@ from __future__ import annotations
 __all__ = ["GUIDED", "METHODS", "MODEL_BASED", "PPO_METHODS"]
 
 #: Methods of ``recipes/train.py``.
-METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc", "sac", "sac_mpc")
-#: Methods that plan with a learned model.
-MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc")
+METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc", "sac", "sac_mpc", "sac_mbpo")
+#: Methods that learn a world model (``sac_mbpo`` learns from its rollouts, nothing plans).
+MODEL_BASED: tuple[str, ...] = ("mpc", "ppo_mpc", "sac_mpc", "sac_mbpo")
 #: Methods trained with PPO.
 PPO_METHODS: tuple[str, ...] = ("ppo", "mpc", "ppo_mpc")
 #: Methods whose planner is guided by the policy.

@@ -77,18 +77,32 @@ LEARNED_TERMINATION = [
 ]
 
 
+#: sac_mbpo on the tiny budget: a rollout round every batch and a model replay that wraps
+#: around before the checkpoint at 400 steps (its FIFO position is restored too).
+MBPO = [
+    "world_model.ensemble_size=2",
+    "mbpo.rollout_every=100",
+    "mbpo.refit_every=300",
+    "mbpo.rollout_batch_size=64",
+    "mbpo.rollout_horizon=3",
+    "mbpo.model_replay_size=150",
+    "sac.utd_ratio=0.5",
+]
+
+
 @pytest.mark.parametrize(
     "method",
     [
         "ppo",
         "ppo_mpc",
         "sac",
+        "sac_mbpo",
         pytest.param("sac_mpc", marks=pytest.mark.slow),
         pytest.param("ppo_mpc_learned_termination", marks=pytest.mark.slow),
     ],
 )
 def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, method):
-    cfg = [f"method={method}", *TINY]
+    cfg = [f"method={method}", *TINY, *(MBPO if method == "sac_mbpo" else [])]
     if method == "ppo_mpc_learned_termination":
         cfg = ["method=ppo_mpc", *LEARNED_TERMINATION]
     straight = tmp_path / "straight"

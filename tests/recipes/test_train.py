@@ -82,7 +82,14 @@ def test_method_smoke_run(tmp_path, method, extra):
     if "eval_episodes=0" in extra:  # no evaluation: no eval rows, no NaN return
         assert summary["final_eval_return"] is None
         assert not (run / "logs" / "scalars" / "eval" / "return.csv").exists()
-    assert set(summary["time_breakdown"]) == {"env_s", "act_s", "update_s", "refit_s", "other_s"}
+    assert set(summary["time_breakdown"]) == {
+        "env_s",
+        "act_s",
+        "update_s",
+        "refit_s",
+        "rollout_s",
+        "other_s",
+    }
     if method in ("mpc", "ppo_mpc", "sac_mpc"):
         assert summary["random_steps"] == 300
     if method in ("mpc", "ppo_mpc"):

@@ -1,3 +1,4 @@
+from torchrl_mbmf.data.mixed_replay import MixedReplaySampler
 from torchrl_mbmf.data.replay import ReplaySampler
 from torchrl_mbmf.data.transitions import (
     CorruptDatasetError,
@@ -9,6 +10,7 @@ from torchrl_mbmf.data.transitions import (
 __all__ = [
     "CorruptDatasetError",
     "DatasetMismatchError",
+    "MixedReplaySampler",
     "ReplaySampler",
     "TransitionDataset",
     "collect_random_transitions",

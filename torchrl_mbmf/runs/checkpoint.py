@@ -11,7 +11,8 @@ A checkpoint is a folder ``<run_dir>/checkpoints/<step>/`` written by :class:`Ru
 - ``logger``: the logger's state (the CSV rows written so far), when it has one;
 - ``dataset``: the real-transition dataset (model-based methods), left out where the
   schedule no longer needs it (after planning ends);
-- ``replay``: SAC's replay buffer entries.
+- ``replay``: SAC's replay buffer entries;
+- ``model_replay``: ``sac_mbpo``'s imagined transitions (stored whole).
 
 Beside each checkpoint the trained policy is exported (``policy.pt``). How the folders are
 written and checked is :mod:`torchrl_mbmf.runs.storage`; what a resume may change is
@@ -138,6 +139,8 @@ class RunCheckpoint:
             (``None``: always). A checkpoint written where it is not needed leaves it out,
             and resuming from one leaves the dataset as it is.
         replay: ``(buffer, keys)``: the replay buffer and the entries it stores, if any.
+        model_replay: ``(buffer, keys)``: the imagined transitions' replay (``sac_mbpo``),
+            stored whole (they cannot be rebuilt from the real data), if any.
         backend: the logger backend's name (for the warning of uncut logs).
 
     Examples:
@@ -161,6 +164,7 @@ class RunCheckpoint:
         dataset: TransitionDataset | None = None,
         dataset_needed: Callable[[Any], bool] | None = None,
         replay: tuple[TensorDictReplayBuffer, Sequence[NestedKey]] | None = None,
+        model_replay: tuple[TensorDictReplayBuffer, Sequence[NestedKey]] | None = None,
         backend: str = "csv",
     ) -> None:
         self.run_dir = Path(run_dir)
@@ -178,15 +182,15 @@ class RunCheckpoint:
             checkpoint.register(name, component, adapter=state)
         if dataset is not None:
             checkpoint.register("dataset", dataset, adapter=DatasetCheckpointAdapter())
-        if replay is not None:
-            buffer, keys = replay
-            checkpoint.register("replay", buffer, adapter=ReplayCheckpointAdapter(keys=keys))
-        self.checkpoint = checkpoint
         self.names = ["progress", *components]
         if dataset is not None:
             self.names.append("dataset")
-        if replay is not None:
-            self.names.append("replay")
+        for name, entry in (("replay", replay), ("model_replay", model_replay)):
+            if entry is not None:
+                buffer, keys = entry
+                checkpoint.register(name, buffer, adapter=ReplayCheckpointAdapter(keys=keys))
+                self.names.append(name)
+        self.checkpoint = checkpoint
         self.rotation = CheckpointRotation(self.run_dir / CHECKPOINTS, keep_last=keep_last)
         #: The resume-safe settings the last :meth:`resume` found changed (``{key: (old, new)}``).
         self.allowed_changes: dict[str, tuple[Any, Any]] = {}

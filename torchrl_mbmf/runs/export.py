@@ -241,4 +241,41 @@ def variant_tag(planner: Any, world_model: Any | None = None) -> str:
     return "__" + "-".join(parts) if parts else ""
 
 
+def mbpo_tag(method: str, mbpo: Any, utd_ratio: float) -> str:
+    """Run-name suffix of a ``sac_mbpo`` run's rollout and update settings (``""`` otherwise).
+
+    Registered as the OmegaConf resolver ``mbpo_variant``:
+    ``${mbpo_variant:${method},${mbpo},${sac.utd_ratio}}``.
+
+    Args:
+        method: the run's method.
+        mbpo: the ``mbpo`` config node (or dict).
+        utd_ratio: ``sac.utd_ratio``.
+
+    Examples:
+        >>> from torchrl_mbmf.runs.export import mbpo_tag
+        >>> mbpo = {"rollout_horizon": 1, "rollout_batch_size": 25000, "real_ratio": 0.05,
+        ...         "rollout_every": 250, "refit_every": 1000, "model_replay_size": 100000}
+        >>> mbpo_tag("sac_mbpo", mbpo, 5), mbpo_tag("sac", mbpo, 1)
+        ('__mbpo-H1-M25000-r0.05-utd5', '')
+    """
+    if method != "sac_mbpo":
+        return ""
+    utd = float(utd_ratio)
+    parts = [
+        f"H{int(mbpo['rollout_horizon'])}",
+        f"M{int(mbpo['rollout_batch_size'])}",
+        f"r{float(mbpo['real_ratio']):g}",
+        f"utd{utd:g}",
+    ]
+    if int(mbpo["rollout_every"]) != 250:
+        parts.append(f"every{int(mbpo['rollout_every'])}")
+    if int(mbpo["refit_every"]) != 1000:
+        parts.append(f"refit{int(mbpo['refit_every'])}")
+    if int(mbpo["model_replay_size"]) != 100000:
+        parts.append(f"keep{int(mbpo['model_replay_size'])}")
+    return "__mbpo-" + "-".join(parts)
+
+
 OmegaConf.register_new_resolver("mbmf_variant", variant_tag, replace=True)
+OmegaConf.register_new_resolver("mbpo_variant", mbpo_tag, replace=True)

@@ -21,6 +21,7 @@ from torchrl_mbmf.methods import METHODS, MODEL_BASED, PPO_METHODS
 __all__ = [
     "DEFAULT_TARGETS",
     "IMPLIED_DEFAULTS",
+    "OPTIONAL_GROUPS",
     "RESUME_SAFE_SETTINGS",
     "check_resume_budget",
     "describe_refused",
@@ -40,7 +41,11 @@ DEFAULT_TARGETS: dict[str, str] = {
     "world_model": "torchrl_mbmf.trainers.planning.WorldModelPart",
     "planner": "torchrl_mbmf.trainers.planning.make_planner",
     "logger": "torchrl_mbmf.trainers.build.make_logger",
+    "mbpo": "torchrl_mbmf.world_model.branched_rollouts.BranchedRollouts",
 }
+
+#: Groups that configs written before them lack (what only their method reads).
+OPTIONAL_GROUPS: dict[str, str] = {"mbpo": "sac_mbpo"}
 
 #: Settings a resumed run may change: they do not change what is trained (the budget, the
 #: progress bar, torch threads, evaluation and checkpoint retention, folder names). Every other
@@ -94,8 +99,10 @@ def resume_changes(
     refused: dict[str, tuple[Any, Any]] = {}
     allowed: dict[str, tuple[Any, Any]] = {}
     unused = _unused_group(saved.get("method"), now.get("method"))
+    methods = {saved.get("method"), now.get("method")}
+    skipped = tuple(f"{g}." for g, m in OPTIONAL_GROUPS.items() if m not in methods)
     for key in sorted(set(saved) | set(now)):
-        if unused is not None and key.startswith(unused):
+        if (unused is not None and key.startswith(unused)) or key.startswith(skipped):
             continue
         old, new = saved.get(key, _implied(key, missing)), now.get(key, _implied(key, missing))
         if _same(old, new) or (key in SAME_WHEN and SAME_WHEN[key](old) == SAME_WHEN[key](new)):

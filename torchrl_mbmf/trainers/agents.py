@@ -22,6 +22,7 @@ from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate
 from torchrl.objectives.value import GAE
 
 from torchrl_mbmf.checks import Setting, check_arguments, choice, settings
+from torchrl_mbmf.data.mixed_replay import MixedReplaySampler
 from torchrl_mbmf.data.replay import ReplaySampler
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.modules.planners import MinQValue
@@ -353,7 +354,8 @@ class SACAgent:
             storage=LazyTensorStorage(int(replay_size), device=device),
             batch_size=int(batch_size),
         )
-        self.sampler = None
+        self.sampler: ReplaySampler | MixedReplaySampler | None = None
+        self.sample = self.replay.sample
         if fused:
             self.step = FusedSACUpdate(self.loss, self.optim, self.target_updater)
             self.sampler = ReplaySampler(self.replay, self.step.batch_keys)
@@ -390,10 +392,24 @@ class SACAgent:
             if self.sampler is not None:
                 out = self.step.update(*self.sampler())
             else:
-                out = self.step(self.replay.sample())
+                out = self.step(self.sample())
             for k, v in out.items():
                 stats.setdefault(k, []).append(torch.as_tensor(v).detach())
         return {f"loss/{k}": float(torch.stack(v).float().mean()) for k, v in stats.items()}
+
+    def mix_model_replay(self, model: TensorDictReplayBuffer, real_ratio: float) -> None:
+        """Draws every update batch as ``real_ratio`` real and the rest ``model`` rows (MBPO).
+
+        Args:
+            model: the model replay (the entries of :attr:`replay`).
+            real_ratio: the real share of a batch, in ``[0, 1]``.
+        """
+        size = self.replay.batch_size
+        if self.sampler is not None:
+            keys = self.step.batch_keys
+            self.sampler = MixedReplaySampler(self.replay, model, keys, size, real_ratio)
+        mixed = MixedReplaySampler(self.replay, model, self.loss.in_keys, size, real_ratio)
+        self.sample = mixed.sample
 
     def checkpoint_components(self) -> dict[str, Any]:
         """The stateful parts a checkpoint holds as tensor state (the replay buffer apart)."""

@@ -28,6 +28,7 @@ from torchrl_mbmf.trainers.hooks import (
     Hooks,
     ModelData,
     ModelRefit,
+    ModelRollouts,
     ProgressBar,
     SaveCheckpoint,
     StepTiming,
@@ -262,6 +263,8 @@ def make_hooks(config: TrainConfig, model_based: bool) -> tuple[Hooks, dict[str,
     hooks.register("collected", EpisodeLog())
     if model_based:
         hooks.register("collected", ModelData())
+        if config.method == "sac_mbpo":
+            hooks.register("collected", ModelRollouts())
         hooks.register("updated", ModelRefit())
     hooks.register("updated", named["timing"])
     hooks.register("updated", named["evaluation"])

@@ -22,12 +22,14 @@ from torchrl_mbmf.envs.transforms.rewards import REWARDS
 from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
 from torchrl_mbmf.runs.resume import (
     DEFAULT_TARGETS,
+    OPTIONAL_GROUPS,
     RESUME_SAFE_SETTINGS,
     flatten_settings,
     resume_changes,
 )
 from torchrl_mbmf.trainers.components import group_keys, group_target
 from torchrl_mbmf.trainers.device import DeviceError, resolve_device
+from torchrl_mbmf.world_model.branched_rollouts import check_mbpo_config
 
 __all__ = [
     "METHODS",
@@ -146,6 +148,8 @@ def train_setting_keys(cfg: Any) -> dict[str, bool]:
     """
     keys = {key: setting.required for key, setting in TRAIN_SETTINGS.items()}
     for group in DEFAULT_TARGETS:
+        if group not in cfg and group in OPTIONAL_GROUPS:
+            continue
         if group not in cfg:
             raise ConfigError(f"the {group} group is missing from the train config")
         names, required = group_keys(group_target(cfg, group))
@@ -225,8 +229,9 @@ def validate_train_config(cfg: Any) -> None:
         >>> try:
         ...     validate_train_config({"method": "dqn"})
         ... except ConfigError as err:
-        ...     print(err)
-        method='dqn' is not a method; allowed: ['ppo', 'mpc', 'ppo_mpc', 'sac', 'sac_mpc']
+        ...     print(err)  # doctest: +NORMALIZE_WHITESPACE
+        method='dqn' is not a method; allowed: ['ppo', 'mpc', 'ppo_mpc', 'sac', 'sac_mpc',
+        'sac_mbpo']
     """
     method = cfg["method"]
     if method not in METHODS:
@@ -244,6 +249,8 @@ def validate_train_config(cfg: Any) -> None:
     _check_budgets(cfg, method)
     _check_planner_variants(cfg, method)
     _check_world_model_variants(cfg, method)
+    if method == "sac_mbpo":
+        check_mbpo_config(cfg)
 
 
 def _check_env(env: Any) -> None:
@@ -368,10 +375,10 @@ def _check_planner_variants(cfg: Any, method: str) -> None:
 def _check_world_model_variants(cfg: Any, method: str) -> None:
     wm = cfg["world_model"]
     members = _count(wm.get("ensemble_size", 1)) or 1
-    if members > 1 and method not in GUIDED:
+    if members > 1 and method not in (*GUIDED, "sac_mbpo"):
         raise ConfigError(
             f"world_model.ensemble_size={members} plans with the ensemble policy-guided planner; "
-            f"it needs method ppo_mpc or sac_mpc, got method={method!r}"
+            f"it needs method ppo_mpc or sac_mpc (or sac_mbpo), got method={method!r}"
         )
     if members > 1 and cfg["planner"].get("refinement"):
         raise ConfigError(

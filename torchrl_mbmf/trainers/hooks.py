@@ -228,6 +228,35 @@ class ModelRefit(Hook):
             trainer.refit_model()
 
 
+class ModelRollouts(Hook):
+    """``sac_mbpo``: a round of branched model rollouts when one is due (``collected``).
+
+    Runs after :class:`ModelData` (the batch's real states are start states), before the
+    batch's updates; the next round is due ``mbpo.rollout_every`` real steps later
+    (``progress["next_rollout"]``, checkpointed).
+
+    Examples:
+        >>> from torchrl_mbmf.trainers.hooks import ModelRollouts
+        >>> ModelRollouts.NEXT
+        'next_rollout'
+    """
+
+    #: The progress entry of the next round's real step.
+    NEXT = "next_rollout"
+
+    def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        progress, rollouts = trainer.progress, trainer.rollouts
+        if trainer.acting is not Actor.PLANNER or progress.real_steps < progress.get(self.NEXT, 0):
+            return
+        start = time.perf_counter()
+        scalars = rollouts.generate(trainer.world.dataset)
+        progress[self.NEXT] = progress.real_steps + rollouts.rollout_every
+        seconds = time.perf_counter() - start
+        trainer.times["rollout_s"] += seconds
+        trainer.log({**scalars, "time/rollout_s": seconds})
+
+
 class StepTiming(Hook):
     """Logs the batch's learning time and the run's steps per second (``updated``).
 

@@ -41,6 +41,7 @@ from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 from torchrl_mbmf.trainers.settings import TrainConfig
 from torchrl_mbmf.trainers.signals import StopRequest
+from torchrl_mbmf.world_model.branched_rollouts import BranchedRollouts, policy_as_planner
 
 __all__ = [
     "Trainer",
@@ -55,8 +56,8 @@ __all__ = [
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
 
-    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` or ``sac_mpc``; every real step counts toward
-    ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
+    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac``, ``sac_mpc`` or ``sac_mbpo``; every real step counts
+    toward ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
     checkpoint to the uninterrupted run's weights. How: ``docs/design/loop.md``.
 
     Args:
@@ -77,7 +78,7 @@ class Trainer:
     """
 
     #: The measured parts of :meth:`time_breakdown` (the rest is ``other_s``).
-    TIME_KEYS: tuple[str, ...] = ("env_s", "act_s", "update_s", "refit_s")
+    TIME_KEYS: tuple[str, ...] = ("env_s", "act_s", "update_s", "refit_s", "rollout_s")
 
     def __init__(self, cfg: DictConfig, run_dir: Path) -> None:
         # parsed once: nothing reads the raw config after this constructor
@@ -98,15 +99,27 @@ class Trainer:
         # argument, so a bad value stops the run here, before any work.
         self.agent: Agent = make_agent(settings.family, self.env, config.agent, self.device)
         self.world: WorldModelPart | None = None
+        mbpo = settings.method == "sac_mbpo"
         if settings.model_based:
             self.world = config.world_model.build(
                 env=self.env,
                 agent=self.agent,
                 device=self.device,
-                planner=config.planner.build,
+                planner=policy_as_planner if mbpo else config.planner.build,
                 seed=settings.seed,
                 guided=settings.method != "mpc",
             )
+        self.rollouts: BranchedRollouts | None = None
+        if mbpo:  # the model replay and the real/model mix of the SAC batches
+            self.rollouts = config.mbpo.build(
+                world_model=self.world.model,
+                env=self.env,
+                actor=self.agent.actor,
+                keys=self.agent.loss.in_keys,
+                termination_fn=self.world.termination,
+                device=self.device,
+            )
+            self.agent.mix_model_replay(self.rollouts.replay, self.rollouts.real_ratio)
         self.schedule = PhaseSchedule.from_config(config)
         self.progress = Progress(
             phase=self.schedule.first_phase().value,
@@ -314,7 +327,7 @@ def make_run_checkpoint(trainer: Trainer) -> RunCheckpoint:
         >>> callable(make_run_checkpoint)
         True
     """
-    agent, world = trainer.agent, trainer.world
+    agent, world, rollouts = trainer.agent, trainer.world, trainer.rollouts
     tensors = dict(agent.checkpoint_components())
     if world is not None:
         tensors.update(world.checkpoint_components())
@@ -327,6 +340,7 @@ def make_run_checkpoint(trainer: Trainer) -> RunCheckpoint:
         dataset=None if world is None else world.dataset,
         dataset_needed=trainer.schedule.dataset_needed,
         replay=None if agent.replay is None else (agent.replay, agent.loss.in_keys),
+        model_replay=None if rollouts is None else (rollouts.replay, rollouts.keys),
         backend=trainer.settings.logger_backend,
     )
 
@@ -376,17 +390,19 @@ def time_breakdown(times: Mapping[str, float], seconds: float) -> dict[str, floa
 
     ``env_s``: real env steps with their transforms (with the stock collector, the policy's
     time too); ``act_s``: the actor or planner; ``update_s``: PPO/SAC updates; ``refit_s``:
-    world-model refits; ``other_s``: the rest (logging, evaluation, checkpoints, datasets).
+    world-model refits; ``rollout_s``: ``sac_mbpo``'s model rollouts; ``other_s``: the rest
+    (logging, evaluation, checkpoints, datasets).
 
     Args:
         times: the measured seconds of :data:`Trainer.TIME_KEYS`.
         seconds: the wall time the breakdown splits.
 
     Examples:
-        >>> time_breakdown({"env_s": 1.0, "act_s": 2.0, "update_s": 3.0, "refit_s": 0.0}, 10)
-        {'env_s': 1.0, 'act_s': 2.0, 'update_s': 3.0, 'refit_s': 0.0, 'other_s': 4.0}
+        >>> times = {"env_s": 1.0, "act_s": 2.0, "update_s": 3.0, "refit_s": 0.0, "rollout_s": 1}
+        >>> time_breakdown(times, 10)["other_s"]
+        3.0
     """
-    out = {key: float(times[key]) for key in Trainer.TIME_KEYS}
+    out = {key: float(times.get(key, 0.0)) for key in Trainer.TIME_KEYS}
     out["other_s"] = max(0.0, float(seconds) - sum(out.values()))
     return out
 

@@ -128,8 +128,9 @@ class RunPlan:
         frames = min(1000 * n, -(-wanted // n) * n)
         random_end = min(total, -(-wanted // frames) * frames)
         fits = [random_end]
-        if method == "sac_mpc":
-            every, step, next_fit = int(cfg.sac.refit_every_steps), random_end, random_end
+        if method in ("sac_mpc", "sac_mbpo"):
+            every = int(cfg.sac.refit_every_steps if method == "sac_mpc" else cfg.mbpo.refit_every)
+            step, next_fit = random_end, random_end
             next_fit += every
             while step < total:
                 step += batch

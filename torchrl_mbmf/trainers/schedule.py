@@ -229,6 +229,8 @@ class PhaseSchedule:
             )
         if method == "sac_mpc":
             return cls(model_based=True, refit_every_steps=int(cfg.sac.refit_every_steps))
+        if method == "sac_mbpo":  # its "planner" is the actor (acts in the planning phase)
+            return cls(model_based=True, refit_every_steps=int(cfg.mbpo.refit_every))
         if method == "sac":
             return cls(model_based=False, init_random_frames=int(cfg.sac.init_random_frames))
         return cls(model_based=False)

@@ -4,9 +4,9 @@
 fields and each group as its dataclass (:class:`EnvSettings`, :class:`RewardSettings`,
 :class:`CheckpointSettings`, and the component groups :class:`PPOSettings`,
 :class:`SACSettings`, :class:`WorldModelSettings`, :class:`PlannerSettings`,
-:class:`LoggerSettings`). :meth:`TrainConfig.from_config` validates the config
-(:func:`~torchrl_mbmf.trainers.config.validate_train_config`) and parses it; the trainer builds
-every part from these objects and reads the raw config no more. A component group's fields
+:class:`LoggerSettings`, :class:`MBPOSettings`). :meth:`TrainConfig.from_config` validates the
+config (:func:`~torchrl_mbmf.trainers.config.validate_train_config`) and parses it; the trainer
+builds every part from these objects and reads the raw config no more. A component group's fields
 are its builder's keyword-only parameters with the builder's defaults (tested), and
 :meth:`GroupSettings.build` calls the builder (its ``_target_``) with them; the builders'
 constructors check each value and the error names the config key.
@@ -31,6 +31,7 @@ __all__ = [
     "EnvSettings",
     "GroupSettings",
     "LoggerSettings",
+    "MBPOSettings",
     "PPOSettings",
     "PlannerSettings",
     "RewardSettings",
@@ -314,6 +315,35 @@ class LoggerSettings(GroupSettings):
     backend: str
 
 
+@dataclass(frozen=True, kw_only=True)
+class MBPOSettings(GroupSettings):
+    """The ``mbpo`` group (:class:`~torchrl_mbmf.world_model.branched_rollouts.BranchedRollouts`).
+
+    Args:
+        rollout_every: real steps between rollout rounds.
+        rollout_batch_size: branches per round.
+        rollout_horizon: imagined steps per branch.
+        model_replay_size: imagined transitions kept.
+        real_ratio: real share of each update batch.
+        refit_every: real steps between model refits.
+        target: see :class:`GroupSettings`.
+        extra: see :class:`GroupSettings`.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> MBPOSettings.parse(OmegaConf.load("configs/mbpo/default.yaml")).rollout_horizon
+        1
+    """
+
+    GROUP: ClassVar[str] = "mbpo"
+    rollout_every: int
+    rollout_batch_size: int
+    rollout_horizon: int
+    model_replay_size: int
+    real_ratio: float
+    refit_every: int
+
+
 @dataclass(frozen=True)
 class EnvSettings:
     """The ``env`` group.
@@ -374,6 +404,7 @@ GROUPS: dict[str, type[GroupSettings]] = {
     "world_model": WorldModelSettings,
     "planner": PlannerSettings,
     "logger": LoggerSettings,
+    "mbpo": MBPOSettings,
 }
 
 
@@ -400,6 +431,7 @@ class TrainConfig:
         settings: the loop's view (:class:`~torchrl_mbmf.trainers.config.TrainSettings`).
         record: the resolved, flattened config (what a resume compares).
         restart: move a finished or foreign run aside. Defaults to ``False``.
+        mbpo: the MBPO group (``None``: a config without it). Defaults to ``None``.
 
     Examples:
         >>> from hydra import compose, initialize_config_dir
@@ -429,6 +461,7 @@ class TrainConfig:
     settings: TrainSettings
     record: dict[str, Any]
     restart: bool = False
+    mbpo: MBPOSettings | None = None
 
     @property
     def agent(self) -> PPOSettings | SACSettings:
@@ -446,7 +479,7 @@ class TrainConfig:
             ConfigError: naming the first invalid key.
         """
         settings = TrainSettings.from_config(cfg)  # validates
-        groups = {name: kind.parse(cfg[name]) for name, kind in GROUPS.items()}
+        groups = {name: kind.parse(cfg[name]) for name, kind in GROUPS.items() if name in cfg}
         reward_kwargs = _plain(cfg.reward.get("kwargs")) or {}
         return cls(
             method=settings.method,

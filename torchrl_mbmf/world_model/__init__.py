@@ -1,8 +1,16 @@
 """Fitting the world model: the one fitter, its data split, history, ensembles and snapshots.
 
+Also MBPO's branched model rollouts (:class:`BranchedRollouts`), which learn from it.
+
 Used alone by the analysis and the benchmarks; nothing here imports the training loop.
 """
 
+from torchrl_mbmf.world_model.branched_rollouts import (
+    BranchedRollouts,
+    RandomMemberEnv,
+    check_mbpo_config,
+    policy_as_planner,
+)
 from torchrl_mbmf.world_model.ensemble_fit import (
     DisagreementCalibration,
     calibrate_disagreement_threshold,
@@ -24,10 +32,13 @@ from torchrl_mbmf.world_model.snapshots import (
 from torchrl_mbmf.world_model.termination_fit import fit_termination
 
 __all__ = [
+    "BranchedRollouts",
     "DisagreementCalibration",
     "EnsembleFitHistory",
     "FitHistory",
+    "RandomMemberEnv",
     "calibrate_disagreement_threshold",
+    "check_mbpo_config",
     "dynamics_optimizer",
     "fit_dynamics",
     "fit_dynamics_kwargs",
@@ -37,6 +48,7 @@ __all__ = [
     "fit_world_model",
     "heldout_open_loop_errors",
     "load_fit_snapshot",
+    "policy_as_planner",
     "save_fit_snapshot",
     "transition_tensors",
 ]
