@@ -207,6 +207,43 @@ class ActorSampler:
             params = tuple(self._params_fn(observation))
         return self._sample(params), params
 
+    def sampler_for_fixed_weights(
+        self,
+    ) -> Callable[[torch.Tensor], tuple[torch.Tensor, tuple[torch.Tensor, ...]]]:
+        """:meth:`sample_with_params` for a loop in which the actor's weights do not change.
+
+        Without autograd the tight chain is looked up once here (not at every call): the
+        returned function draws the same actions and returns the same ``loc`` and ``scale``
+        values as :meth:`sample_with_params` while the weights stay as they were when it was
+        made (a collector's batch: the policy is updated between batches). With autograd on,
+        or without a tight chain, it is :meth:`sample_with_params` itself.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.envs import make_gym_state_env
+            >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+            >>> from torchrl_mbmf.modules.planners.sampling import ActorSampler
+            >>> actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
+            >>> with torch.no_grad():
+            ...     draw = ActorSampler(actor).sampler_for_fixed_weights()
+            ...     action, (loc, scale) = draw(torch.zeros(3))
+            >>> action.shape, scale.shape
+            (torch.Size([1]), torch.Size([1]))
+        """
+        tight = None if torch.is_grad_enabled() else self.tight_params()
+        if tight is None:
+            return self.sample_with_params
+        fn, constant = tight
+        sample = self._sample
+
+        def draw(observation: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+            loc, scale = fn(observation)
+            loc = loc.view(*observation.shape[:-1], loc.shape[-1])
+            scale = constant.expand_as(loc) if constant is not None else scale.reshape(loc.shape)
+            return sample((loc, scale)), (loc, scale)
+
+        return draw
+
     def _sample(self, params: tuple[torch.Tensor, ...]) -> torch.Tensor:
         if not self._fast:
             return self.distribution(*params).sample()
