@@ -47,7 +47,10 @@ MOVED = [
     ("torchrl_mbmf.trainers.ppo", "FusedPPOUpdate", "torchrl_mbmf.objectives.fused_ppo"),
     ("torchrl_mbmf.trainers.sac", "sac_update_step", "torchrl_mbmf.objectives.fused_sac"),
     ("torchrl_mbmf.trainers.sac", "ReplaySampler", "torchrl_mbmf.data.replay"),
-    ("torchrl_mbmf.trainers.sac", "keep_freed_memory", "torchrl_mbmf.trainers.device"),
+    ("torchrl_mbmf.trainers.sac", "keep_freed_memory", "torchrl_mbmf.device"),
+    (f"{T}.device", "resolve_device", "torchrl_mbmf.device"),
+    (f"{T}.device", "keep_freed_memory", "torchrl_mbmf.device"),
+    (f"{T}.signals", "StopRequest", f"{R}.signals"),
 ]
 
 

@@ -62,8 +62,10 @@ MOVED_MODULES: dict[str, tuple[str, ...]] = {
     "sac": (
         "torchrl_mbmf.objectives.fused_sac",
         "torchrl_mbmf.data.replay",
-        "torchrl_mbmf.trainers.device",
+        "torchrl_mbmf.device",
     ),
+    "device": ("torchrl_mbmf.device",),
+    "signals": ("torchrl_mbmf.runs.signals",),
 }
 
 #: Former names of this package and the modules that now hold them. Kept for one release.

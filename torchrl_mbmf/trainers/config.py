@@ -18,6 +18,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_mbmf.checks import ConfigError, Setting, check_number
+from torchrl_mbmf.device import DeviceError, resolve_device
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
 from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
 from torchrl_mbmf.runs.resume import (
@@ -27,7 +28,6 @@ from torchrl_mbmf.runs.resume import (
     resume_changes,
 )
 from torchrl_mbmf.trainers.components import group_keys, group_target
-from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 
 __all__ = [
     "METHODS",

@@ -23,10 +23,12 @@ from torchrl.envs.utils import RandomPolicy
 
 from torchrl_mbmf.checks import check_finite
 from torchrl_mbmf.collectors import LeanCollector
+from torchrl_mbmf.device import resolve_device
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
 from torchrl_mbmf.runs.claim import claim_run_folder
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
+from torchrl_mbmf.runs.signals import StopRequest
 from torchrl_mbmf.trainers.agents import Agent, make_agent
 from torchrl_mbmf.trainers.build import (
     evaluate_policy,
@@ -36,11 +38,9 @@ from torchrl_mbmf.trainers.build import (
     seed_everything,
 )
 from torchrl_mbmf.trainers.config import TrainSettings
-from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 from torchrl_mbmf.trainers.settings import TrainConfig
-from torchrl_mbmf.trainers.signals import StopRequest
 
 __all__ = [
     "Trainer",
@@ -209,7 +209,7 @@ class Trainer:
         """Runs until ``total_steps`` real steps; returns (and writes) a summary.
 
         A SIGTERM or SIGINT stops the run after its next scheduled checkpoint (see
-        :mod:`~torchrl_mbmf.trainers.signals`); the return value then says so and no summary is
+        :mod:`~torchrl_mbmf.runs.signals`); the return value then says so and no summary is
         written.
         """
         try:
