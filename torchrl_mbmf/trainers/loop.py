@@ -23,6 +23,7 @@ from torchrl.envs.utils import RandomPolicy
 
 from torchrl_mbmf.checks import check_finite
 from torchrl_mbmf.collectors import LeanCollector
+from torchrl_mbmf.collectors.factory import evaluate_policy, make_collector
 from torchrl_mbmf.device import resolve_device
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
 from torchrl_mbmf.runs.claim import claim_run_folder
@@ -30,13 +31,7 @@ from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
 from torchrl_mbmf.runs.signals import StopRequest
 from torchrl_mbmf.trainers.agents import Agent, make_agent
-from torchrl_mbmf.trainers.build import (
-    evaluate_policy,
-    make_collector,
-    make_hooks,
-    make_settings_env,
-    seed_everything,
-)
+from torchrl_mbmf.trainers.build import make_hooks, make_settings_env, seed_everything
 from torchrl_mbmf.trainers.config import TrainSettings
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
