@@ -1,10 +1,4 @@
-"""The training loop of every method: model-free, MBMF planning phase, warm-start fine-tuning.
-
-:class:`Trainer` wires the parts of a run (envs, agent, world model and planner, hooks,
-checkpoints) and runs the loop: the :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule`
-says which policy acts, the agent learns from every batch, and the hooks
-(:mod:`~torchrl_mbmf.trainers.hooks`) log, refit the world model, evaluate and checkpoint.
-"""
+"""The training loop of every method: model-free, MBMF planning phase, warm-start fine-tuning."""
 
 from __future__ import annotations
 
@@ -49,10 +43,6 @@ __all__ = [
 
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
-
-    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` or ``sac_mpc``; every real step counts toward
-    ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
-    checkpoint to the uninterrupted run's weights. How: ``docs/design/loop.md``.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -201,12 +191,7 @@ class Trainer:
         return self.schedule.round_over(progress, self.acting)
 
     def train(self) -> dict[str, Any]:
-        """Runs until ``total_steps`` real steps; returns (and writes) a summary.
-
-        A SIGTERM or SIGINT stops the run after its next scheduled checkpoint (see
-        :mod:`~torchrl_mbmf.runs.signals`); the return value then says so and no summary is
-        written.
-        """
+        """Runs until ``total_steps`` real steps (or a signal's checkpoint); returns a summary."""
         try:
             with StopRequest() as stop:
                 return self._train(stop)
