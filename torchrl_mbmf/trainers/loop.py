@@ -102,8 +102,7 @@ class Trainer:
         )
         self.frames_per_batch = settings.frames_per_batch
         self.total_steps = settings.total_steps
-        # The folder is this run's (locked; a finished or foreign run refused) before anything
-        # is written to it; a refused setting above has written nothing.
+        # claimed (locked; finished or foreign runs refused) before anything is written to it
         self.lock = claim_run_folder(self.run_dir, config.record, restart=config.restart)
         self.logger = config.logger.build(run_dir=self.run_dir)
         self.hooks, named = make_hooks(config, self.schedule.model_based)
@@ -166,8 +165,7 @@ class Trainer:
             self.schedule.start_model_free(self.progress)
             self.log({"train/switch_to_model_free": 1.0})
         self.acting = self.schedule.actor(self.progress)
-        # Every collector starts from freshly seeded envs, so a resumed run continues
-        # exactly like an uninterrupted one (checkpoints happen between collectors).
+        # freshly seeded envs: a resumed run continues exactly like an uninterrupted one
         self.env.set_seed(self.settings.seed + self.progress.real_steps)
         collector = self.collector(self.acting, self.frames_per_batch, -1)
         lean = isinstance(collector, LeanCollector)
