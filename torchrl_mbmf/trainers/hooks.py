@@ -44,15 +44,11 @@ class Hook(abc.ABC):
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import Hook
-        >>> class CountBatches(Hook):
-        ...     def __init__(self):
-        ...         self.count = 0
+        >>> class PrintBatch(Hook):
         ...     def __call__(self, trainer, batch):
-        ...         self.count += 1
-        >>> hook = CountBatches()
-        >>> hook(None, None)
-        >>> hook.count
-        1
+        ...         print("batch", batch)
+        >>> PrintBatch()(None, 1)
+        batch 1
     """
 
     @abc.abstractmethod
