@@ -1,15 +1,6 @@
 """An honest ETA for a run, from the phases it will go through and their measured rates.
 
-A run's real steps do not cost the same: random-policy steps fit the first world model at
-thousands of steps per second, planned steps cost a policy-guided plan each (a few ms), the
-model refits take minutes that grow with the dataset, and the model-free fine-tuning runs at
-the pace of the env and the agent's updates. A plain steps-per-second ETA (``tqdm``'s) is
-therefore wrong by an order of magnitude during the random-data phase. Here the remaining time
-is the sum over what is left of the run's :class:`RunPlan` (who acts over which real steps,
-and the dataset size of every model fit) of the per-actor seconds per step and the refit
-seconds per transition measured so far (:class:`PhaseETA`). The agent's pace before the
-model-free phase has begun is estimated as a random step plus the agent's update per step
-measured while planning.
+Why and how: ``docs/design/loop.md`` (the progress bar's ETA).
 """
 
 from __future__ import annotations
@@ -96,9 +87,7 @@ class RunPlan:
 
         Args:
             cfg: the composed training config or its parsed
-                :class:`~torchrl_mbmf.trainers.settings.TrainConfig` (``method``,
-                ``total_steps``, ``env.num_envs``, ``world_model``, ``planning_updates``,
-                ``ppo`` / ``sac``).
+                :class:`~torchrl_mbmf.trainers.settings.TrainConfig`.
 
         Examples:
             >>> from omegaconf import OmegaConf
@@ -160,21 +149,13 @@ class RunPlan:
         )
 
     def fits_left(self, real_steps: int) -> tuple[int, ...]:
-        """The fits still to come once ``real_steps`` steps are collected (not yet learnt from).
-
-        A fit at ``p`` transitions follows the batch that ends at ``p``: it is still due when
-        that batch has just been collected.
-        """
+        """The fits still to come once ``real_steps`` steps are collected (not yet learnt from)."""
         return tuple(p for p in self.fits if p >= real_steps)
 
 
 @dataclass
 class PhaseETA:
     """Remaining time of a :class:`RunPlan` from measured per-actor and per-fit rates.
-
-    Feed it each batch's wall time without model fits (:meth:`observe_batch`), the agent's
-    update time (:meth:`observe_update`) and every fit (:meth:`observe_fit`);
-    :meth:`remaining` is ``None`` until every rate it needs is measured or can be estimated.
 
     Args:
         plan: the run's plan.
@@ -220,11 +201,7 @@ class PhaseETA:
         self.fit_seconds += seconds
 
     def step_seconds(self, actor: Actor) -> float | None:
-        """Seconds per real step of ``actor``: measured, else estimated, else ``None``.
-
-        The agent's steps before any is measured: a random step (the env) plus the agent's
-        update per step measured while planning.
-        """
+        """Seconds per real step of ``actor``: measured, else estimated, else ``None``."""
         if self.steps.get(actor, 0) > 0:
             return self.seconds[actor] / self.steps[actor]
         if actor is Actor.AGENT and self.steps.get(Actor.RANDOM, 0) > 0 and self.update_steps:
@@ -253,11 +230,6 @@ class PhaseETA:
 
 class TrainerETA:
     """Feeds a :class:`PhaseETA` from a trainer's ``collected`` stage; returns the bar's text.
-
-    Between two ``collected`` calls the wall time goes to the actor that collected the batch,
-    minus the world-model fits in between (``trainer.times["refit_s"]``, each a fit on the
-    real transitions collected before it); the agent's update time is read from
-    ``trainer.times["update_s"]``.
 
     Args:
         plan: the run's plan.
