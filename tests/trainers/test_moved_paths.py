@@ -55,6 +55,8 @@ MOVED = [
     (f"{T}.build", "evaluate_policy", "torchrl_mbmf.collectors.factory"),
     (f"{T}.planning", "make_world_model", f"{W}.networks"),
     (f"{T}.planning", "make_termination_head", f"{W}.networks"),
+    (f"{T}.progress", "end_of_run_message", f"{R}.summary_text"),
+    (f"{T}.progress", "format_seconds", f"{R}.summary_text"),
 ]
 
 
@@ -95,7 +97,7 @@ def test_moved_names_left_the_public_list():
     assert not set(trainers.MOVED_NAMES) & set(trainers.__all__)
 
 
-@pytest.mark.parametrize("module", [f"{T}.build", f"{T}.planning"])
+@pytest.mark.parametrize("module", [f"{T}.build", f"{T}.planning", f"{T}.progress"])
 def test_live_modules_list_their_moved_names_and_still_refuse_others(module):
     live = importlib.import_module(module)
     assert live.MOVED_NAMES and not set(live.MOVED_NAMES) & set(live.__all__)
