@@ -308,6 +308,49 @@ def _batch_of(
     return batch
 
 
+def _tensor_sampler(
+    policy: TensorDictModuleBase | Callable[[TensorDictBase], TensorDictBase],
+    exploration_type: ExplorationType,
+    action_key: NestedKey,
+) -> ActorSampler | None:
+    """The tensor-level sampler of a stochastic actor run at random, or ``None``.
+
+    Only for an actor writing exactly its two distribution parameters, the action and
+    ``"action_log_prob"`` (what :func:`_add_policy_outputs` writes back for the batch).
+    """
+    if not isinstance(policy, ProbabilisticActor) or exploration_type != ExplorationType.RANDOM:
+        return None
+    sampler = ActorSampler(policy)
+    keys = {*sampler.param_keys, action_key, "action_log_prob"}
+    if sampler.is_fast and len(sampler.param_keys) == 2 and set(policy.out_keys) == keys:
+        return sampler
+    return None
+
+
+def _add_policy_outputs(
+    batch: TensorDict, outputs: list[Any], sampler: ActorSampler | None, action_key: NestedKey
+) -> None:
+    """Writes what the policy wrote besides the action (the sampler's for the whole batch).
+
+    Args:
+        batch: the batch of :func:`_batch_of`, written in place.
+        outputs: per step, the sampler's ``(loc, scale)`` or the policy's output tensordict.
+        sampler: the collector's tensor-level sampler, or ``None``.
+        action_key: the env's action key.
+    """
+    if sampler is not None:
+        params = [torch.stack(p).cpu() for p in zip(*outputs, strict=True)]
+        for key, value in zip(sampler.param_keys, params, strict=True):
+            batch.set(key, value)
+        action = batch.get(action_key)
+        batch.set("action_log_prob", sampler.distribution(*params).log_prob(action))
+    elif outputs:
+        stacked = torch.stack(outputs)
+        for key in stacked.keys(True, True):
+            if key not in batch.keys(True, True):
+                batch.set(key, stacked.get(key))
+
+
 class LeanCollector:
     """Collects batches like :class:`torchrl.collectors.Collector`, at a fraction of its cost.
 
@@ -380,13 +423,8 @@ class LeanCollector:
         self.exploration_type = exploration_type
         device = torch.device("cpu") if policy_device is None else torch.device(policy_device)
         self._device = None if device.type == "cpu" else device
-        self._sampler: ActorSampler | None = None
+        self._sampler = _tensor_sampler(policy, exploration_type, self._action_key)
         self._random = isinstance(policy, RandomPolicy)
-        if isinstance(policy, ProbabilisticActor) and exploration_type == ExplorationType.RANDOM:
-            sampler = ActorSampler(policy)
-            keys = {*sampler.param_keys, self._action_key, "action_log_prob"}
-            if sampler.is_fast and len(sampler.param_keys) == 2 and set(policy.out_keys) == keys:
-                self._sampler = sampler
         self._frames = 0
         self._next_traj = 0
         self._traj = 0
@@ -454,20 +492,6 @@ class LeanCollector:
         if device is not None:
             out = out.to("cpu")
         return out.get(self._action_key), out
-
-    def _add_policy_outputs(self, batch: TensorDict, outputs: list[Any]) -> None:
-        """Writes what the policy wrote besides the action (the sampler's for the whole batch)."""
-        if self._sampler is not None:
-            params = [torch.stack(p).cpu() for p in zip(*outputs, strict=True)]
-            for key, value in zip(self._sampler.param_keys, params, strict=True):
-                batch.set(key, value)
-            action = batch.get(self._action_key)
-            batch.set("action_log_prob", self._sampler.distribution(*params).log_prob(action))
-        elif outputs:
-            stacked = torch.stack(outputs)
-            for key in stacked.keys(True, True):
-                if key not in batch.keys(True, True):
-                    batch.set(key, stacked.get(key))
 
     # --------------------------------------------------------------------- loop
     def __iter__(self) -> Iterator[TensorDictBase]:
@@ -548,7 +572,7 @@ class LeanCollector:
         steps.carry_roots(n, recorded)
         steps = steps.first(n)
         batch = _batch_of(self._layout, steps, self._action_key, start_return, actions)
-        self._add_policy_outputs(batch, outputs)
+        _add_policy_outputs(batch, outputs, self._sampler, self._action_key)
         if not (steps.terminated[-1] or steps.truncated[-1]):
             # the episode in progress carries its running return into the next batch
             self._running = np.float32(batch.get(("next", "episode_reward"))[-1, 0].item())

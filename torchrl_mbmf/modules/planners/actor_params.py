@@ -1,4 +1,4 @@
-"""The actor's parameter network as plain tensor ops, and the closed-form log-prob."""
+"""The actor's parameter network as a tensor function or plain ops; the closed-form log-prob."""
 
 from __future__ import annotations
 
@@ -7,7 +7,9 @@ import math
 from collections.abc import Callable
 
 import torch
-from tensordict.nn import AddStateIndependentNormalScale
+from tensordict import TensorDict
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule, TensorDictSequential
+from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
@@ -17,6 +19,47 @@ from torchrl_mbmf.modules.planners.fast_model import slot_versions, tensor_slots
 
 ParamsFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def params_fn(
+    modules: list[nn.Module], param_keys: list[NestedKey], observation_key: NestedKey
+) -> tuple[Callable[[torch.Tensor], tuple[torch.Tensor, ...]], nn.Module | None]:
+    """``observation -> params`` of an actor's parameter modules, and its plain network.
+
+    A single ``TensorDictModule`` writing exactly ``param_keys`` around an ``nn.Module`` is
+    called on the tensor itself (its network is returned, for :class:`TightParams`); other
+    modules run as a ``TensorDictSequential`` on a one-entry tensordict (network ``None``).
+
+    Args:
+        modules: the actor's modules before its distribution module.
+        param_keys: the distribution parameters' keys, in order.
+        observation_key: the one key the modules read.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.envs import make_gym_state_env
+        >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+        >>> from torchrl_mbmf.modules.planners.actor_params import params_fn
+        >>> actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
+        >>> fn, net = params_fn(list(actor.module[:-1]), ["loc", "scale"], "observation")
+        >>> [p.shape for p in fn(torch.zeros(2, 3))], net is actor.module[0].module
+        ([torch.Size([2, 1]), torch.Size([2, 1])], True)
+    """
+    if (
+        len(modules) == 1
+        and isinstance(modules[0], TensorDictModule)
+        and list(modules[0].out_keys) == param_keys
+        and isinstance(modules[0].module, torch.nn.Module)
+    ):
+        net = modules[0].module
+        return (lambda obs: net(obs)), net
+    seq = TensorDictSequential(*modules)
+
+    def params(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        td = seq(TensorDict({observation_key: obs}, batch_size=obs.shape[:-1]))
+        return tuple(td.get(k) for k in param_keys)
+
+    return params, None
 
 
 def _flat_layers(net: nn.Module) -> list[nn.Module]:
@@ -173,4 +216,4 @@ def normal_log_prob(
     return log_prob + normal.sum(-1)
 
 
-__all__ = ["ParamsFn", "TightParams", "normal_log_prob"]
+__all__ = ["ParamsFn", "TightParams", "normal_log_prob", "params_fn"]

@@ -5,14 +5,13 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from tensordict import TensorDict
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import distributions as D
 from torch import nn
-from torchrl.modules import IndependentNormal, TanhNormal
 
-from torchrl_mbmf.modules.planners.actor_params import ParamsFn, TightParams, normal_log_prob
+from torchrl_mbmf.modules.planners.actor_params import ParamsFn, TightParams, params_fn
+from torchrl_mbmf.modules.planners.normal_draws import NormalDraws
 
 
 class ActorSampler:
@@ -23,7 +22,8 @@ class ActorSampler:
     :class:`~torchrl.modules.TanhNormal`, :class:`~torchrl.modules.IndependentNormal` or
     :class:`torch.distributions.Normal`, this samples by reparameterisation (same random
     numbers, same values as the distribution's ``sample``); other actors fall back on a
-    tensordict pass and the distribution's ``sample``.
+    tensordict pass and the distribution's ``sample``. The draws and closed-form log-probs:
+    :class:`~torchrl_mbmf.modules.planners.normal_draws.NormalDraws`.
 
     Args:
         actor: a TorchRL ``ProbabilisticActor`` (any ``ProbabilisticTensorDictSequential``).
@@ -60,25 +60,15 @@ class ActorSampler:
                 f"the actor must read a single observation key, it reads {sorted(in_keys)}"
             )
         self.observation_key: NestedKey = in_keys.pop()
-        self._net: nn.Module | None = None
         self._tight: TightParams | None = None
-        self._params_fn = self._make_params_fn(params_modules)
-        self._fast = self.distribution_class in (TanhNormal, IndependentNormal, D.Normal)
-        if self.distribution_class is TanhNormal:
-            low = torch.as_tensor(self.distribution_kwargs.get("low", -1.0))
-            high = torch.as_tensor(self.distribution_kwargs.get("high", 1.0))
-            self._tanh_loc = bool(self.distribution_kwargs.get("tanh_loc", False))
-            self._upscale = self.distribution_kwargs.get("upscale", 5.0)
-            self._mid, self._half = (high + low) / 2, (high - low) / 2
-            self._affine = bool((high != 1.0).any() or (low != -1.0).any())
-        # closed-form log-probs for exactly "Normal, then tanh (and the affine map to [low,
-        # high])" or an independent Normal, as torchrl builds them
-        kwargs = set(self.distribution_kwargs)
-        if self.distribution_class is TanhNormal:
-            self.closed_form_log_prob = kwargs <= {"low", "high", "tanh_loc", "upscale"}
-            self.closed_form_log_prob &= not self._tanh_loc
-        else:
-            self.closed_form_log_prob = self.distribution_class is IndependentNormal and not kwargs
+        self._net: nn.Module | None
+        self._params_fn, self._net = params_fn(
+            params_modules, self.param_keys, self.observation_key
+        )
+        self._draws = NormalDraws(self.distribution_class, self.distribution_kwargs)
+        self._fast = self._draws.fast
+        #: whether :meth:`log_prob` runs in closed form (see :class:`NormalDraws`)
+        self.closed_form_log_prob = self._draws.closed_form_log_prob
 
     def __getstate__(self) -> dict[str, object]:
         # closures over the network: rebuilt from the copied actor after a copy or pickle
@@ -88,28 +78,8 @@ class ActorSampler:
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
         self._tight = None
-        self._params_fn = self._make_params_fn(list(self.actor.module[:-1]))
-
-    def _make_params_fn(
-        self, modules: list[torch.nn.Module]
-    ) -> Callable[[torch.Tensor], tuple[torch.Tensor, ...]]:
-        if (
-            len(modules) == 1
-            and isinstance(modules[0], TensorDictModule)
-            and list(modules[0].out_keys) == self.param_keys
-            and isinstance(modules[0].module, torch.nn.Module)
-        ):
-            net = modules[0].module
-            self._net = net
-            return lambda obs: net(obs)
-        seq = TensorDictSequential(*modules)
-        key = self.observation_key
-
-        def params(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            td = seq(TensorDict({key: obs}, batch_size=obs.shape[:-1]))
-            return tuple(td.get(k) for k in self.param_keys)
-
-        return params
+        modules = list(self.actor.module[:-1])
+        self._params_fn, self._net = params_fn(modules, self.param_keys, self.observation_key)
 
     def tight_params(self) -> tuple[ParamsFn, torch.Tensor | None] | None:
         """A tensor-only ``obs [N, d] -> (loc, scale)`` for the current weights, for hot loops.
@@ -142,27 +112,11 @@ class ActorSampler:
             noise: a buffer shaped like ``loc`` for the draw (the same numbers as a fresh
                 one; used for a contiguous ``loc``). Defaults to a new tensor.
         """
-        if noise is not None and loc.is_contiguous() and noise.shape == loc.shape:
-            x = noise.normal_()  # what ``randn_like`` runs on its fresh tensor
-        else:
-            x = torch.randn_like(loc)  # (``torch.normal``: the same draw, slower: checks std)
-        if self.distribution_class is not TanhNormal:
-            if out is None:
-                return x.mul_(scale).add_(loc)
-            return torch.mul(x, scale, out=out).add_(loc)  # elementwise: the same values
-        x.mul_(scale).add_(loc)
-        x = x.tanh_() if out is None else torch.tanh(x, out=out)
-        eps = torch.finfo(x.dtype).resolution
-        x.clamp_(-1 + eps, 1 - eps)
-        if self._affine:
-            x.mul_(self._half.to(x)).add_(self._mid.to(x))
-        return x
+        return self._draws.sample_into(loc, scale, out, noise)
 
     def action_range(self) -> tuple[float, float] | None:
         """Bounds every action of :meth:`sample_params` lies in, or ``None`` (unbounded)."""
-        if self.distribution_class is TanhNormal and not self._affine:
-            return -1.0, 1.0
-        return None
+        return self._draws.action_range()
 
     def params(self, observation: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The distribution parameters (``loc``, ``scale``) at ``observation``."""
@@ -248,16 +202,7 @@ class ActorSampler:
         if not self._fast:
             return self.distribution(*params).sample()
         loc, scale = params
-        if self.distribution_class is TanhNormal:
-            if self._tanh_loc:
-                loc = (loc / self._upscale).tanh() * self._upscale
-            x = (loc + scale * torch.randn_like(loc)).tanh()
-            eps = torch.finfo(x.dtype).resolution
-            x = x.clamp(-1 + eps, 1 - eps)
-            if self._affine:
-                x = self._mid.to(x) + self._half.to(x) * x
-            return x
-        return loc + scale * torch.randn_like(loc)
+        return self._draws.sample(loc, scale)
 
     def log_prob(self, observation: torch.Tensor, action: torch.Tensor) -> dict[str, torch.Tensor]:
         """Distribution parameters at ``observation`` and the log-prob of ``action`` under them.
@@ -298,7 +243,4 @@ class ActorSampler:
         """
         if not self.closed_form_log_prob:
             return self.distribution(loc, scale).log_prob(action)
-        squash = None
-        if self.distribution_class is TanhNormal:
-            squash = (self._mid, self._half) if self._affine else ()
-        return normal_log_prob(action, loc, scale, squash)
+        return self._draws.log_prob(action, loc, scale)
