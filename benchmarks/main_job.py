@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/main_job.py             # 2 rounds of A/B short runs (~10 min)
     .venv/bin/python benchmarks/main_job.py --quick     # 1 round, fewer updates
     .venv/bin/python benchmarks/main_job.py --thesis-only
+    .venv/bin/python benchmarks/main_job.py --units-from benchmarks/results/main_job_threads.json
 
 Runs the default recipe (``recipes/train.py``, the thesis' settings) at a short budget: the
 thesis' 10,000 random steps and first fit (200 epochs), ``--planning-updates`` PPO-MPC
@@ -16,10 +17,10 @@ at each batch; ``time/update_s`` the batch's update; ``time/model_fit_s`` each f
 seconds per planning step (env + planner), per PPO-only step (env + policy), per update, and
 microseconds per fitted transition-epoch (``model_fit_s / (epochs * training split)``, the
 first fit's). These are extrapolated to the 1e6-step job with the thesis' schedule, read from
-the committed whole run (``--run``, default the fastest uninterrupted one): its random steps,
-switch step, update count and its fits' sizes and epochs (refits grow with the data: 10k,
-112k, 215k and 317k transitions). The same decomposition of the committed run itself gives
-its real breakdown. Prints a table, writes ``benchmarks/results/main_job.json``.
+the committed whole run (``--run``, default the README job run whole and uninterrupted): its
+random steps, switch step, update count and its fits' sizes and epochs (refits grow with the
+data: 10k, 112k, 215k and 317k transitions). The same decomposition of the committed run
+itself gives its real breakdown. Prints a table, writes ``benchmarks/results/main_job.json``.
 
 The fit cost per transition-epoch is the first fit's (9,000 training transitions); the larger
 refits run at about the same rate (``benchmarks/world_model.py`` measures 100k). On a shared
@@ -45,7 +46,7 @@ from _common import print_table, write
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "train.py"
-DEFAULT_RUN = ROOT / "results/thesis/runs/HalfCheetah-v5__ppo_mpc__head_pen__h10__seed0"
+DEFAULT_RUN = ROOT / "results/main_job/runs/HalfCheetah-v5__ppo_mpc__default__h10__seed0"
 FRAMES = 2048  # the thesis' ppo.frames_per_batch
 VAL_FRACTION = 0.1  # the thesis' world_model.val_fraction
 
@@ -220,6 +221,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="*", default=[1], choices=[1, 2])
     parser.add_argument("--run", type=Path, default=DEFAULT_RUN, help="committed whole run")
     parser.add_argument("--thesis-only", action="store_true", help="only the committed run")
+    parser.add_argument(
+        "--units-from",
+        type=Path,
+        default=None,
+        help="reuse the short runs' unit costs of an earlier result JSON instead of measuring",
+    )
     parser.add_argument("--out", default="main_job")
     args = parser.parse_args()
     if args.quick:
@@ -227,7 +234,9 @@ def main() -> None:
     schedule = run_breakdown(args.run)
     table = {"committed run": committed_rows(schedule)}
     units: dict[str, list[dict[str, object]]] = {}
-    if not args.thesis_only:
+    if args.units_from is not None:
+        units = json.loads(args.units_from.read_text())["runs"]
+    elif not args.thesis_only:
         variants = ["autograd fit", "fused fit"] + (["fused fit, threads=2"] * (2 in args.threads))
         with tempfile.TemporaryDirectory() as d:
             for r in range(args.rounds):
@@ -235,8 +244,8 @@ def main() -> None:
                     run_dir = _short_run(variant, args, Path(d), r)
                     units.setdefault(variant, []).append(run_breakdown(run_dir))
                     print(f"round {r}: {variant} done", flush=True)
-        for variant, runs in units.items():
-            table[variant] = extrapolate(_median_unit(runs), schedule)
+    for variant, runs in units.items():
+        table[variant] = extrapolate(_median_unit(runs), schedule)
     rows = [
         {"component": name, **{column: values[name] for column, values in table.items()}}
         for name in table["committed run"]
@@ -257,6 +266,7 @@ def main() -> None:
     extra = {
         "job": "recipes/train.py defaults (PPO-MPC, HalfCheetah-v5, thesis settings)",
         "committed_run": schedule,
+        "units_from": None if args.units_from is None else args.units_from.name,
         "short_run": {
             "random_steps": args.random_steps,
             "planning_updates": args.planning_updates,

@@ -65,8 +65,9 @@ PACKAGES = (
 )
 
 # Real step budgets: (full, --quick). A run of ours stops at the first batch boundary at or past
-# total_steps: SAC collects 1000-step batches (budgets: multiples of 1000), the model-based
-# methods their random steps first (ppo_mpc: random + updates x 2048, sac_mpc: random + k x 1000).
+# total_steps: SAC collects sac.frames_per_batch-step batches (50 by default; the budgets are
+# multiples of it), the model-based methods their random steps first (ppo_mpc: random + updates x
+# 2048, sac_mpc: random + k x 50).
 BUDGETS = {
     "ppo_steps": (20480, 2048),
     "sac_steps": (8000, 1000),
@@ -401,7 +402,8 @@ def main() -> None:
         "fresh process; alternated ours, SB3 per repetition. steps/s = real env steps / training "
         f"wall time (ours: summary.json seconds with eval_episodes={args.eval_episodes} and the "
         "final checkpoint; SB3: .learn, which neither evaluates nor saves). SAC: "
-        "ours takes one update per frame past init_random_frames after each 1000-step batch, "
+        "ours takes one update per frame past init_random_frames after each batch of "
+        "sac.frames_per_batch steps (50 by default), "
         "SB3 one after every env step past learning_starts: the same gradient step counts "
         "(grad_steps). Shared machines: compare ratios, not absolute rates."
     )

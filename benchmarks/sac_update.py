@@ -37,8 +37,8 @@ from _common import print_table, write
 from rl_helpers import make_test_sac_loss
 
 from torchrl_mbmf.data import ReplaySampler
+from torchrl_mbmf.device import keep_freed_memory
 from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
-from torchrl_mbmf.trainers.device import keep_freed_memory
 
 OBS, ACT, HIDDEN, BATCH = 17, 6, 256, 256
 

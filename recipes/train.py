@@ -19,10 +19,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from torchrl_mbmf.device import keep_freed_memory
 from torchrl_mbmf.runs import FinishedRunError
+from torchrl_mbmf.runs.summary_text import end_of_run_message
 from torchrl_mbmf.trainers import Trainer
-from torchrl_mbmf.trainers.device import keep_freed_memory
-from torchrl_mbmf.trainers.progress import end_of_run_message
 
 log = logging.getLogger("train")
 

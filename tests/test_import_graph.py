@@ -19,7 +19,7 @@ NAME = PACKAGE.name
 #: The floors below the training loop: they never import ``trainers``.
 LOWER = ("runs", "world_model", "objectives", "modules", "envs", "data", "collectors")
 #: Top-level modules every floor may use.
-LEAVES = ("checks", "keys", "methods", "offscreen")
+LEAVES = ("checks", "device", "keys", "methods", "moved", "offscreen")
 #: Consumers of the package that nothing in it imports.
 CONSUMERS = ("analysis", "baselines")
 

@@ -92,6 +92,47 @@ def test_lean_collector_equals_stock_collector(env_id, reward, policy_kind):
     assert any(bool(b["next", "done"].any()) for b in stock)
 
 
+@pytest.mark.parametrize("policy_kind", ["ppo_normal", "sac"])
+def test_lean_collector_follows_weights_changed_between_batches(policy_kind):
+    """Weights changed between batches, in place or by a loss's load_state_dict (which
+    bumps no version counter), act in the next batch as they do in the stock collector's."""
+    from torchrl.objectives import ClipPPOLoss
+
+    batches = {}
+    for lean in (False, True):
+        torch.manual_seed(0)
+        env = make_env("HalfCheetah-v5", seed=3, max_episode_steps=25)
+        if policy_kind == "ppo_normal":
+            policy, _ = make_ppo_actor_critic(env, hidden_sizes=(16,), distribution="normal")
+        else:
+            policy, _ = make_sac_actor_critic(env, hidden_sizes=(16,))
+        loss = ClipPPOLoss(policy, make_ppo_actor_critic(env, hidden_sizes=(16,))[1])
+        env.set_seed(11)
+        torch.manual_seed(1)
+        kind = LeanCollector if lean else Collector
+        extra = {} if lean else {"total_frames": -1, "auto_register_policy_transforms": False}
+        collector = kind(env, policy, frames_per_batch=30, **extra)
+        out = []
+        for i, batch in enumerate(collector):
+            out.append(batch.clone())
+            if i == 0:
+                with torch.no_grad():
+                    for p in policy.parameters():
+                        p.mul_(1.5)
+            elif i == 1:
+                state = loss.state_dict()
+                loss.load_state_dict(
+                    {k: v - 0.2 if v.is_floating_point() else v for k, v in state.items()}
+                )
+            else:
+                break
+        collector.shutdown()
+        batches[lean] = out
+    for s, f in zip(batches[False], batches[True], strict=True):
+        for key in ("action", "loc", "scale", ("next", "state")):
+            assert torch.equal(s.get(key), f.get(key)), key
+
+
 def test_lean_collector_refuses_other_envs():
     from torchrl.envs import GymEnv
 

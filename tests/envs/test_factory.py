@@ -216,7 +216,7 @@ def test_action_bounds_need_one_bounded_range():
 )
 @pytest.mark.parametrize("ensemble_size", [1, 2])
 def test_recipe_world_model_takes_the_env_action_range(env_id, bounds, ensemble_size):
-    from torchrl_mbmf.trainers.planning import make_world_model
+    from torchrl_mbmf.world_model.networks import make_world_model
 
     env = make_env(env_id)
     model = make_world_model(env, hidden_sizes=[8], ensemble_size=ensemble_size)
@@ -230,7 +230,7 @@ def test_recipe_world_model_takes_the_env_action_range(env_id, bounds, ensemble_
 def test_recipe_world_model_refuses_a_float64_state_naming_double_to_float():
     from torchrl.envs import RenameTransform
 
-    from torchrl_mbmf.trainers.planning import make_world_model
+    from torchrl_mbmf.world_model.networks import make_world_model
 
     env = TransformedEnv(GymEnv("Hopper-v5"), RenameTransform(["observation"], ["state"]))
     with pytest.raises(ValueError, match=r"'state' is torch.float64.*DoubleToFloat\(\)"):

@@ -395,6 +395,50 @@ def test_tight_params_of_the_tanh_loc_actor_unroll_its_network(real):
     assert calls == []
 
 
+@pytest.mark.parametrize("distribution", ["normal", "tanh_normal"])
+@pytest.mark.parametrize("shape", [(), (5,), (2, 3)])
+def test_sampler_draws_what_the_stock_actor_draws(real, distribution, shape):
+    """The collectors' and step loops' draws (the tight chain) equal the actor's, bit for bit."""
+    torch.manual_seed(0)
+    policy, _ = make_ppo_actor_critic(real, distribution=distribution, init_log_std=-0.5)
+    sampler = ActorSampler(policy)
+    obs = torch.randn(*shape, 17)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        torch.manual_seed(1)
+        td = policy(TensorDict(observation=obs, batch_size=shape))
+        torch.manual_seed(1)
+        action, (loc, scale) = sampler.sample_with_params(obs)
+    assert torch.equal(loc, td["loc"]) and torch.equal(scale, td["scale"])
+    assert torch.equal(action, td["action"])
+    # with autograd on, the module path (gradients reach the parameters)
+    _, (loc, _) = sampler.sample_with_params(obs)
+    assert loc.requires_grad
+
+
+@pytest.mark.parametrize("distribution", ["normal", "tanh_normal"])
+def test_sampler_follows_a_loss_load_state_dict(real, distribution):
+    """A torchrl loss loads parameters in place without bumping their version counters (a
+    resumed run): the tight chain's constant scale follows them all the same."""
+    from torchrl.objectives import ClipPPOLoss
+
+    torch.manual_seed(0)
+    policy, critic = make_ppo_actor_critic(real, distribution=distribution)
+    loss = ClipPPOLoss(policy, critic)
+    sampler = ActorSampler(policy)
+    obs = torch.randn(17)
+    state = {k: v + 0.25 if v.is_floating_point() else v for k, v in loss.state_dict().items()}
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        sampler.sample_with_params(obs)  # the chain and its constant scale are built
+        loss.load_state_dict(state)
+        torch.manual_seed(1)
+        td = policy(TensorDict(observation=obs))
+        torch.manual_seed(1)
+        action, (loc, scale) = sampler.sample_with_params(obs)
+    assert torch.equal(scale, td["scale"]) and torch.equal(loc, td["loc"])
+    assert torch.equal(action, td["action"])
+    assert torch.equal(scale, torch.full_like(scale, 0.25).exp())
+
+
 @pytest.mark.parametrize("bounds", [(-1.0, 1.0), (-2.0, 0.5)])
 def test_closed_form_log_prob_matches_distribution(bounds):
     torch.manual_seed(0)

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from torchrl_mbmf.trainers.device import DeviceError, resolve_device
+from torchrl_mbmf.device import DeviceError, resolve_device
 
 
 def test_cpu_and_auto_without_gpu(monkeypatch):

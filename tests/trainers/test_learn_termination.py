@@ -34,7 +34,7 @@ def _trainer(tmp_path: Path, *overrides: str):
 
 
 def test_the_head_is_fitted_with_the_model_and_ends_the_planners_candidates(tmp_path, caplog):
-    with caplog.at_level(logging.INFO, logger="torchrl_mbmf.trainers.planning"):
+    with caplog.at_level(logging.INFO, logger="torchrl_mbmf.world_model.networks"):
         trainer = _trainer(tmp_path, "world_model.learn_termination=true")
     said = [r.getMessage() for r in caplog.records if "learn_termination" in r.getMessage()]
     assert len(said) == 1 and "HopperTermination" in said[0] and "not used" in said[0]

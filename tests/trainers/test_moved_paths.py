@@ -47,7 +47,16 @@ MOVED = [
     ("torchrl_mbmf.trainers.ppo", "FusedPPOUpdate", "torchrl_mbmf.objectives.fused_ppo"),
     ("torchrl_mbmf.trainers.sac", "sac_update_step", "torchrl_mbmf.objectives.fused_sac"),
     ("torchrl_mbmf.trainers.sac", "ReplaySampler", "torchrl_mbmf.data.replay"),
-    ("torchrl_mbmf.trainers.sac", "keep_freed_memory", "torchrl_mbmf.trainers.device"),
+    ("torchrl_mbmf.trainers.sac", "keep_freed_memory", "torchrl_mbmf.device"),
+    (f"{T}.device", "resolve_device", "torchrl_mbmf.device"),
+    (f"{T}.device", "keep_freed_memory", "torchrl_mbmf.device"),
+    (f"{T}.signals", "StopRequest", f"{R}.signals"),
+    (f"{T}.build", "make_collector", "torchrl_mbmf.collectors.factory"),
+    (f"{T}.build", "evaluate_policy", "torchrl_mbmf.collectors.factory"),
+    (f"{T}.planning", "make_world_model", f"{W}.networks"),
+    (f"{T}.planning", "make_termination_head", f"{W}.networks"),
+    (f"{T}.progress", "end_of_run_message", f"{R}.summary_text"),
+    (f"{T}.progress", "format_seconds", f"{R}.summary_text"),
 ]
 
 
@@ -86,3 +95,11 @@ def test_unknown_names_still_fail():
 
 def test_moved_names_left_the_public_list():
     assert not set(trainers.MOVED_NAMES) & set(trainers.__all__)
+
+
+@pytest.mark.parametrize("module", [f"{T}.build", f"{T}.planning", f"{T}.progress"])
+def test_live_modules_list_their_moved_names_and_still_refuse_others(module):
+    live = importlib.import_module(module)
+    assert live.MOVED_NAMES and not set(live.MOVED_NAMES) & set(live.__all__)
+    with pytest.raises(AttributeError, match="no_such_name"):
+        live.no_such_name  # noqa: B018

@@ -9,8 +9,9 @@ import torch
 from rl_helpers import make_test_ppo
 from tensordict import TensorDict
 from torchrl.objectives.value import GAE
+from torchrl.objectives.value.functional import generalized_advantage_estimate
 
-from torchrl_mbmf.objectives.fused_ppo import PPO_STATS, FusedPPOUpdate, ppo_update
+from torchrl_mbmf.objectives.fused_ppo import PPO_STATS, FusedPPOUpdate, gae_recursion, ppo_update
 
 
 def _pair(distribution: str, num_envs: int | None, frames: int = 64):
@@ -35,6 +36,55 @@ def test_gae_matches_torchrl(distribution, num_envs):
     stock = gae(batch.clone())
     torch.testing.assert_close(advantage, stock["advantage"], rtol=0, atol=0)
     torch.testing.assert_close(value_target, stock["value_target"], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(("shape", "time_dim"), [((300, 1), 0), ((3, 200, 1), 1), ((40, 2, 2), 0)])
+def test_gae_recursion_is_torchrls_gae(shape, time_dim, dtype):
+    """The NumPy recursion gives torchrl's loop's advantages and targets bit for bit."""
+    g = torch.Generator().manual_seed(0)
+    value, next_value = 30 * torch.randn(2, *shape, generator=g, dtype=dtype)
+    reward = torch.randn(shape, generator=g, dtype=dtype)
+    done = torch.rand(shape, generator=g) < 0.05
+    terminated = done & (torch.rand(shape, generator=g) < 0.5)
+    assert done.any() and terminated.any() and (done & ~terminated).any()
+    gamma, lmbda = torch.tensor(0.99), torch.tensor(0.95)
+    args = (gamma, lmbda, value, next_value, reward, done, terminated)
+    stock = generalized_advantage_estimate(*args, time_dim=time_dim)
+    ours = gae_recursion(*args, time_dim=time_dim)
+    for a, b in zip(ours, stock, strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert torch.equal(a, b)
+
+
+def test_gae_recursion_refuses_what_it_does_not_run():
+    g = torch.tensor(0.9)
+    with pytest.raises(ValueError, match="one shape"):
+        gae_recursion(
+            g,
+            g,
+            torch.zeros(4, 1),
+            torch.zeros(4, 1),
+            torch.zeros(3, 1),
+            torch.zeros(4, 1, dtype=torch.bool),
+            torch.zeros(4, 1, dtype=torch.bool),
+        )
+    flags = torch.zeros(4, 1, dtype=torch.bool)
+    with pytest.raises(ValueError, match="CPU float"):
+        ints = torch.zeros(4, 1, dtype=torch.int64)
+        gae_recursion(g, g, ints, ints, ints, flags, flags)
+
+
+def test_hooked_actor_modules_keep_their_calls():
+    """A module with a hook is called as it is (the unrolled ops would skip the hook)."""
+    (loss, gae, optim), _, batch = _pair("normal", None)
+    assert FusedPPOUpdate(loss, gae, optim).nets._loc_run is not None  # unrolled, unhooked
+    calls = []
+    relu = next(m for m in loss.actor_network.modules() if isinstance(m, torch.nn.ReLU))
+    relu.register_forward_hook(lambda *args: calls.append(1))
+    fused = FusedPPOUpdate(loss, gae, optim, epochs=1, minibatch_size=16)
+    fused(batch.clone())
+    assert len(calls) == 64 // 16
 
 
 @pytest.mark.parametrize("num_envs", [None, 2])

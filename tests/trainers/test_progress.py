@@ -11,12 +11,11 @@ import pytest
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+from torchrl_mbmf.runs.summary_text import end_of_run_message, format_seconds
 from torchrl_mbmf.trainers.progress import (
     PhaseETA,
     RunPlan,
     TrainerETA,
-    end_of_run_message,
-    format_seconds,
 )
 from torchrl_mbmf.trainers.schedule import Actor
 

@@ -254,7 +254,7 @@ def test_fused_update_autograd_actor_fallback_matches_sacloss(monkeypatch):
 def test_keep_freed_memory():
     import platform
 
-    from torchrl_mbmf.trainers.device import keep_freed_memory
+    from torchrl_mbmf.device import keep_freed_memory
 
     applied = keep_freed_memory()
     if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":

@@ -183,6 +183,25 @@ class _Steps:
         self.root_count[t] = count
         self.traj[t] = traj
 
+    def carry_roots(self, n: int, recorded: list[int]) -> None:
+        """Fills the root observation and info of the first ``n`` steps but ``recorded``.
+
+        Each is the previous step's ``"next"`` entry (the same array the loop would have
+        copied).
+
+        Args:
+            n: the steps taken.
+            recorded: the steps whose root entries :meth:`record_root` wrote (step 0 and
+                every step after a reset).
+        """
+        carried = np.ones(n, dtype=bool)
+        carried[recorded] = False
+        rows = np.flatnonzero(carried)
+        if rows.size:
+            self.root_obs[rows] = self.next_obs[rows - 1]
+            for root, nxt in zip(self.root_info, self.next_info, strict=True):
+                root[rows] = nxt[rows - 1]
+
     def record_next(
         self,
         t: int,
@@ -412,16 +431,21 @@ class LeanCollector:
     def _root_td(self, obs: np.ndarray, info: list[np.ndarray]) -> TensorDict:
         return _root_td(self._layout, obs, info, self._count, self._running)
 
-    def _act(self, obs: np.ndarray, info: list[np.ndarray]) -> tuple[torch.Tensor, Any]:
-        """The policy's action at this step (on the CPU) and its outputs to keep, or ``None``."""
+    def _act(
+        self, obs: np.ndarray, info: list[np.ndarray], draw: Callable[..., Any] | None
+    ) -> tuple[torch.Tensor, Any]:
+        """The policy's action at this step (on the CPU) and its outputs to keep, or ``None``.
+
+        ``draw`` is the sampler's draw for this batch (the weights do not change within it).
+        """
         device = self._device
-        if self._sampler is not None:
+        if draw is not None:
             policy_obs = self._layout.observation.observation(
                 torch.from_numpy(obs).to(torch.float32)
             )
             if device is not None:
                 policy_obs = policy_obs.to(device)
-            action, params = self._sampler.sample_with_params(policy_obs)
+            action, params = draw(policy_obs)
             return (action if device is None else action.cpu()), params
         if self._random:
             return self.policy.action_spec.rand().get(self._action_key), None
@@ -488,11 +512,23 @@ class LeanCollector:
         outputs: list[Any] = []
         act_s = 0.0
         ended = False
+        # step 0 and the steps after a reset record their root entries; the others' are the
+        # previous step's "next" entries, copied once for the batch (carry_roots)
+        recorded: list[int] = []
+        fresh = True
         with torch.no_grad(), set_exploration_type(self.exploration_type):
+            # nothing changes the policy's weights while this loop runs
+            draw = None if self._sampler is None else self._sampler.sampler_for_fixed_weights()
             for t in range(n):
-                steps.record_root(t, obs, info, self._count, self._traj)
+                if fresh:
+                    steps.record_root(t, obs, info, self._count, self._traj)
+                    recorded.append(t)
+                    fresh = False
+                else:
+                    steps.root_count[t] = self._count
+                    steps.traj[t] = self._traj
                 a0 = clock()
-                action, out = self._act(obs, info)
+                action, out = self._act(obs, info, draw)
                 if out is not None:
                     outputs.append(out)
                 act_s += clock() - a0
@@ -507,7 +543,9 @@ class LeanCollector:
                         n, ended = t + 1, True
                         break
                     obs, info = self._reset()
+                    fresh = True
         self._current = None if ended else (obs, info)
+        steps.carry_roots(n, recorded)
         steps = steps.first(n)
         batch = _batch_of(self._layout, steps, self._action_key, start_return, actions)
         self._add_policy_outputs(batch, outputs)

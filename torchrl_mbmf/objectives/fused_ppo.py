@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDictBase
@@ -12,7 +13,7 @@ from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from tensordict.nn.utils import mappings
 from torch import Tensor, nn
 from torch import distributions as D
-from torchrl.modules import IndependentNormal, TanhNormal
+from torchrl.modules import MLP, IndependentNormal, TanhNormal
 from torchrl.objectives import AUTO_LOSS_MASK_KEYS, ClipPPOLoss
 from torchrl.objectives.value import GAE
 from torchrl.objectives.value.functional import (
@@ -20,9 +21,17 @@ from torchrl.objectives.value.functional import (
     vec_generalized_advantage_estimate,
 )
 
+from torchrl_mbmf.modules.actors import TanhLoc
 from torchrl_mbmf.modules.mlp import activate, affine
 
-__all__ = ["FusedPPOUpdate", "PPOAdvantage", "PPOGradients", "PlainPPONetworks", "ppo_update"]
+__all__ = [
+    "FusedPPOUpdate",
+    "PPOAdvantage",
+    "PPOGradients",
+    "PlainPPONetworks",
+    "gae_recursion",
+    "ppo_update",
+]
 
 #: Loss entries averaged into the logged statistics.
 PPO_STATS: tuple[str, ...] = ("loss_objective", "loss_critic", "loss_entropy", "kl_approx")
@@ -136,7 +145,10 @@ class PlainPPONetworks:
                 "Sequential(loc_net, AddStateIndependentNormalScale) (see make_ppo_actor_critic)"
             )
         actor_owned = _owned_params(loss.actor_network, loss.actor_network_params)
-        self.loc_layers = _plain_layers(net[0] if len(net) == 2 else net[:-1], actor_owned)
+        loc_net = net[0] if len(net) == 2 else net[:-1]
+        self.loc_layers = _plain_layers(loc_net, actor_owned)
+        # what dist_params and value run: the same ops without the module calls
+        self._loc_run = _unrolled_layers(loc_net, actor_owned)
         self.scale_module = net[-1]
         self.log_std = actor_owned[id(net[-1].state_independent_scale)]
         self._scale_map = mappings(self.scale_module.scale_mapping)
@@ -150,6 +162,7 @@ class PlainPPONetworks:
             )
         critic_owned = _owned_params(critic, loss.critic_network_params)
         self.value_layers = _plain_layers(critic.module, critic_owned)
+        self._value_run = _unrolled_layers(critic.module, critic_owned)
         dist_class = dist_module.distribution_class
         kwargs = dict(dist_module.distribution_kwargs or {})
         if issubclass(dist_class, TanhNormal):
@@ -210,7 +223,7 @@ class PlainPPONetworks:
         Args:
             obs: the observations.
         """
-        loc = self.mlp(self.loc_layers, obs)
+        loc = self.mlp(self._runnable(self._loc_run, self.loc_layers), obs)
         scale = self.log_std.expand_as(loc)
         scale = self._scale_map(scale).clamp_min(self.scale_module.scale_lb)
         return loc, scale
@@ -221,7 +234,14 @@ class PlainPPONetworks:
         Args:
             obs: the observations.
         """
-        return self.mlp(self.value_layers, obs)
+        return self.mlp(self._runnable(self._value_run, self.value_layers), obs)
+
+    @staticmethod
+    def _runnable(unrolled: list[Any] | None, layers: list[Any]) -> list[Any]:
+        # module calls where a global module hook would see them
+        if unrolled is None or nn.modules.module._has_any_global_hook():
+            return layers
+        return unrolled
 
     def pre_tanh(self, action: Tensor) -> tuple[Tensor, Tensor]:
         """A squashed action's pre-tanh value and log-det-Jacobian (no gradient).
@@ -285,11 +305,12 @@ class PPOAdvantage:
             terminated = nxt.get(self.terminated_key, default=done)
             gamma = gae.gamma.to(reward.device)
             lmbda = gae.lmbda.to(reward.device)
-            fn = (
-                vec_generalized_advantage_estimate
-                if gae.vectorized
-                else generalized_advantage_estimate
-            )
+            if gae.vectorized:
+                fn = vec_generalized_advantage_estimate
+            elif _recursion_supported(value):
+                fn = gae_recursion
+            else:
+                fn = generalized_advantage_estimate
             return fn(
                 gamma,
                 lmbda,
@@ -327,17 +348,33 @@ class PPOGradients:
         self.loss = loss
         self.nets = nets
 
-    def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def constants(self) -> dict[str, Tensor]:
+        """The tensors :meth:`losses` derives from the loss's buffers (the same ops, once)."""
+        loss = self.loss
+        eps = loss.clip_epsilon
+        return {
+            "low": (-eps).log1p(),
+            "high": eps.log1p(),
+            "neg_entropy_coeff": -loss.entropy_coeff,
+            "critic_coeff": loss.critic_coeff,
+        }
+
+    def losses(
+        self, mb: dict[str, Tensor], constants: dict[str, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The ``ClipPPOLoss`` terms of one minibatch of tensors.
 
         Args:
             mb: ``obs [N, obs_dim]``, ``action [N, A]``, ``log_prob [N]``,
                 ``advantage [N, 1]`` and ``value_target [N, 1]``.
+            constants: :meth:`constants` of the current buffers, or ``None`` to compute
+                them. Defaults to ``None``.
 
         Returns:
             ``(loss_objective, loss_critic, loss_entropy, kl_approx)`` (``kl_approx`` detached).
         """
         loss = self.loss
+        c = self.constants() if constants is None else constants
         advantage = mb["advantage"]
         if loss.normalize_advantage and advantage.numel() > 1:
             advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
@@ -352,8 +389,7 @@ class PPOGradients:
         log_weight = (log_prob - prev).unsqueeze(-1)
         kl_approx = (prev - log_prob).unsqueeze(-1).detach().mean()
         gain1 = log_weight.exp() * advantage
-        eps = loss.clip_epsilon
-        log_weight_clip = log_weight.clamp((-eps).log1p(), eps.log1p())
+        log_weight_clip = log_weight.clamp(c["low"], c["high"])
         gain2 = log_weight_clip.exp() * advantage
         gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
         loss_objective = (-gain).mean()
@@ -371,10 +407,10 @@ class PPOGradients:
             entropy = -lp.mean(0)
         else:
             entropy = (0.5 + 0.5 * _LOG2PI + scale.log()).sum(-1)
-        loss_entropy = (-loss.entropy_coeff * entropy.unsqueeze(-1)).mean()
+        loss_entropy = (c["neg_entropy_coeff"] * entropy.unsqueeze(-1)).mean()
         value = nets.value(mb["obs"])
         loss_critic = _DISTANCES[loss.loss_critic_type](mb["value_target"], value, reduction="none")
-        loss_critic = (loss.critic_coeff * loss_critic).mean()
+        loss_critic = (c["critic_coeff"] * loss_critic).mean()
         return loss_objective, loss_critic, loss_entropy, kl_approx
 
     def scalars(self) -> dict[str, float]:
@@ -571,13 +607,17 @@ class FusedPPOUpdate:
         """
         return self.gae_step(batch)
 
-    def losses(self, mb: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def losses(
+        self, mb: dict[str, Tensor], constants: dict[str, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The minibatch's loss terms through autograd (see :meth:`PPOGradients.losses`).
 
         Args:
             mb: the minibatch tensors.
+            constants: :meth:`PPOGradients.constants`, or ``None`` to compute them.
+                Defaults to ``None``.
         """
-        return self.grads.losses(mb)
+        return self.grads.losses(mb, constants)
 
     def _prepare(self, batch: TensorDictBase, manual: bool) -> dict[str, Tensor]:
         if batch.ndim < 1:
@@ -627,6 +667,8 @@ class FusedPPOUpdate:
             # transposed weight views, taken after the flat buffers own the parameters
             self.nets.loc_spec = _retranspose(self.nets.loc_spec)
             self.nets.value_spec = _retranspose(self.nets.value_spec)
+        else:
+            constants = self.grads.constants()  # the buffers do not change in an iteration
         stats = []
         for _ in range(self.epochs):
             perm = torch.randperm(n)
@@ -642,7 +684,7 @@ class FusedPPOUpdate:
                     stats.append(self.grads.manual(mb, grads, scalars))
                     flat.step(self.max_grad_norm, per_tensor_norms=False)
                     continue
-                objective, critic, entropy, kl = self.losses(mb)
+                objective, critic, entropy, kl = self.losses(mb, constants)
                 total = objective + critic + entropy
                 if flat is None:
                     self.optimizer.zero_grad(set_to_none=True)
@@ -869,6 +911,143 @@ def _plain_layers(net: nn.Module, owned: dict[int, Tensor]) -> list[Any]:
     for module in net.children():
         layers += _plain_layers(module, owned)
     return layers
+
+
+def _hooked(module: nn.Module) -> bool:
+    return any(
+        m._forward_hooks or m._forward_pre_hooks or m._backward_hooks or m._backward_pre_hooks
+        for m in module.modules()
+    )
+
+
+def _unrolled_layers(net: nn.Module, owned: dict[int, Tensor]) -> list[Any] | None:
+    """:func:`_plain_layers` with the module calls unrolled into the ops they run, or ``None``.
+
+    A :class:`~torchrl_mbmf.modules.actors.TanhLoc` becomes its network's layers and
+    ``torch.tanh``, a ``ReLU``/``Tanh`` module ``torch.relu``/``torch.tanh`` (what their
+    ``forward`` calls), a plain ``Sequential`` or single-output torchrl ``MLP`` its layers:
+    the same ops in the same order, so the same values and autograd graph. ``None`` (run
+    :func:`_plain_layers`) where a module has hooks or is of another kind.
+    """
+    if _hooked(net):
+        return None
+    if type(net) is TanhLoc:
+        inner = _unrolled_layers(net.net, owned)
+        return None if inner is None else [*inner, torch.tanh]
+    if type(net) is nn.ReLU and not net.inplace:
+        return [torch.relu]
+    if type(net) is nn.Tanh:
+        return [torch.tanh]
+    if type(net) is nn.Linear:
+        return _plain_layers(net, owned)
+    if type(net) is nn.Sequential or (type(net) is MLP and not net._reshape_out):
+        layers: list[Any] = []
+        for module in net.children():
+            inner = _unrolled_layers(module, owned)
+            if inner is None:
+                return None
+            layers += inner
+        return layers
+    return None
+
+
+def _recursion_supported(value: Tensor) -> bool:
+    return (
+        value.device.type == "cpu"
+        and value.dtype in (torch.float32, torch.float64)
+        and value.dim() >= 2
+    )
+
+
+def gae_recursion(
+    gamma: Tensor,
+    lmbda: Tensor,
+    state_value: Tensor,
+    next_state_value: Tensor,
+    reward: Tensor,
+    done: Tensor,
+    terminated: Tensor,
+    *,
+    time_dim: int = -2,
+) -> tuple[Tensor, Tensor]:
+    """The GAE of torchrl's ``generalized_advantage_estimate``, its recursion on NumPy scalars.
+
+    The same tensor ops for the TD errors, discounts and value target, and the same IEEE
+    products and sums step by step (``prev = delta[t] + prev * discount[t]``, in the tensors'
+    dtype), without a tensor op per time step: bit-identical, about 40x faster for a
+    2048-step batch on a CPU. CPU float32/float64 tensors ``[*B, T, F]``.
+
+    Args:
+        gamma: the discount (a tensor, as the GAE module's buffer).
+        lmbda: GAE's lambda (likewise).
+        state_value: ``V(s)``.
+        next_state_value: ``V(s')``.
+        reward: the rewards.
+        done: the done flags.
+        terminated: the terminated flags.
+
+    Keyword Args:
+        time_dim: the time dimension of the tensors. Defaults to ``-2``.
+
+    Returns:
+        ``(advantage, value_target)``.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.objectives.value.functional import generalized_advantage_estimate
+        >>> from torchrl_mbmf.objectives.fused_ppo import gae_recursion
+        >>> v, nv, r = torch.randn(3, 50, 1).unbind(0)
+        >>> done = torch.zeros(50, 1, dtype=torch.bool)
+        >>> done[20] = True
+        >>> g, lm = torch.tensor(0.99), torch.tensor(0.95)
+        >>> ours = gae_recursion(g, lm, v, nv, r, done, done)
+        >>> stock = generalized_advantage_estimate(g, lm, v, nv, r, done=done, terminated=done)
+        >>> all(torch.equal(a, b) for a, b in zip(ours, stock))
+        True
+    """
+    if not (
+        next_state_value.shape == state_value.shape == reward.shape == done.shape
+        and terminated.shape == done.shape
+    ):
+        raise ValueError(
+            "gae_recursion expects values, rewards and flags of one shape, got "
+            f"{[tuple(t.shape) for t in (state_value, next_state_value, reward, done, terminated)]}"
+        )
+    if not _recursion_supported(state_value) or state_value.dim() < 2:
+        raise ValueError(
+            f"gae_recursion runs on CPU float tensors [*B, T, F], got {state_value.dtype} "
+            f"{tuple(state_value.shape)} on {state_value.device}"
+        )
+    time = time_dim % state_value.dim()
+    move = time != state_value.dim() - 2
+    if move:  # as torchrl's time-dim wrapper: the time dim next to last
+        state_value, next_state_value, reward, done, terminated = (
+            t.transpose(time, -2) for t in (state_value, next_state_value, reward, done, terminated)
+        )
+    # torchrl's generalized_advantage_estimate, op for op, but for the loop over time steps
+    not_done = (~done).int()
+    not_terminated = (~terminated).int()
+    g_not_terminated = gamma * not_terminated
+    delta = reward + (g_not_terminated * next_state_value) - state_value
+    discount = lmbda * gamma * not_done
+    steps = delta.shape[-2]
+    by_time = delta.movedim(-2, 0)
+    d = by_time.reshape(steps, -1).numpy().T.copy()  # [M, T]: one row per sequence
+    c = discount.movedim(-2, 0).reshape(steps, -1).numpy().T.copy()
+    adv = np.empty_like(d)
+    zero = d.dtype.type(0)
+    with np.errstate(all="ignore"):
+        for row in range(d.shape[0]):
+            d_row, c_row, out = list(d[row]), list(c[row]), adv[row]
+            prev = zero
+            for t in range(steps - 1, -1, -1):
+                prev = d_row[t] + prev * c_row[t]
+                out[t] = prev
+    advantage = torch.from_numpy(adv.T.copy()).view(by_time.shape).movedim(0, -2)
+    value_target = advantage + state_value
+    if move:
+        return advantage.transpose(time, -2), value_target.transpose(time, -2)
+    return advantage, value_target
 
 
 def _manual_spec(layers: list[Any]) -> list[Any] | None:

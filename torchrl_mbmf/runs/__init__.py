@@ -11,6 +11,7 @@ from torchrl_mbmf.runs.dataset_replay import DatasetReplay, compact_checkpoint, 
 from torchrl_mbmf.runs.export import load_policy, save_policy, variant_tag
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
+from torchrl_mbmf.runs.summary_text import end_of_run_message, format_seconds
 
 __all__ = [
     "DatasetReplay",
@@ -21,8 +22,10 @@ __all__ = [
     "RunFolderLock",
     "claim_run_folder",
     "compact_checkpoint",
+    "end_of_run_message",
     "expand_checkpoint",
     "fingerprint",
+    "format_seconds",
     "load_policy",
     "save_policy",
     "variant_tag",

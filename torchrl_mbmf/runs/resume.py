@@ -117,7 +117,7 @@ def resume_changes(
 def _device(value: Any) -> Any:
     """The device a ``device`` setting means on this machine (``auto`` and ``cuda`` resolved).
 
-    The same rule as :func:`torchrl_mbmf.trainers.device.resolve_device`, without its checks
+    The same rule as :func:`torchrl_mbmf.device.resolve_device`, without its checks
     (a device this machine lacks is refused when the run builds).
     """
     if value == "auto":

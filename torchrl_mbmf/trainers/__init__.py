@@ -3,17 +3,15 @@
 Names that lived here before the package was split keep working for one release: importing
 them (``torchrl_mbmf.trainers.fit_dynamics``, ``torchrl_mbmf.trainers.dataset_replay``) warns
 with a :class:`DeprecationWarning` that names their new home (:data:`MOVED_MODULES`,
-:data:`MOVED_NAMES`).
+:data:`MOVED_NAMES`, through :mod:`torchrl_mbmf.moved`).
 """
 
 from __future__ import annotations
 
-import importlib
 import sys
-import types
-import warnings
 
 from torchrl_mbmf.checks import TrainingDivergedError
+from torchrl_mbmf.moved import MovedModule, moved_attribute
 from torchrl_mbmf.trainers.agents import PPOAgent, SACAgent
 from torchrl_mbmf.trainers.config import METHODS, ConfigError, validate_train_config
 from torchrl_mbmf.trainers.loop import Trainer, seed_everything
@@ -62,8 +60,10 @@ MOVED_MODULES: dict[str, tuple[str, ...]] = {
     "sac": (
         "torchrl_mbmf.objectives.fused_sac",
         "torchrl_mbmf.data.replay",
-        "torchrl_mbmf.trainers.device",
+        "torchrl_mbmf.device",
     ),
+    "device": ("torchrl_mbmf.device",),
+    "signals": ("torchrl_mbmf.runs.signals",),
 }
 
 #: Former names of this package and the modules that now hold them. Kept for one release.
@@ -87,47 +87,11 @@ MOVED_NAMES: dict[str, str] = {
 }
 
 
-def _moved(old: str, new: str) -> None:
-    warnings.warn(
-        f"{old} moved to {new}; the old path goes in the next release",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-
-
-class _MovedModule(types.ModuleType):
-    """A former module of this package: its names, read from their new modules, with a warning."""
-
-    def __init__(self, name: str, targets: tuple[str, ...]) -> None:
-        super().__init__(f"{__name__}.{name}", f"Moved to {', '.join(targets)}.")
-        self._targets = targets
-
-    def __getattr__(self, name: str) -> object:
-        if name.startswith("__") and name != "__all__":
-            raise AttributeError(name)
-        if name == "__all__":
-            return [
-                n for t in self._targets for n in getattr(importlib.import_module(t), "__all__", ())
-            ]
-        for target in self._targets:
-            module = importlib.import_module(target)
-            if hasattr(module, name):
-                _moved(f"{self.__name__}.{name}", f"{target}.{name}")
-                return getattr(module, name)
-        raise AttributeError(f"module {self.__name__!r} has no attribute {name!r}")
-
-    def __dir__(self) -> list[str]:
-        return sorted({n for t in self._targets for n in dir(importlib.import_module(t))})
-
-
 for _name, _targets in MOVED_MODULES.items():
-    sys.modules.setdefault(f"{__name__}.{_name}", _MovedModule(_name, _targets))
+    sys.modules.setdefault(f"{__name__}.{_name}", MovedModule(f"{__name__}.{_name}", _targets))
 
 
 def __getattr__(name: str) -> object:
-    if name in MOVED_NAMES:
-        _moved(f"{__name__}.{name}", f"{MOVED_NAMES[name]}.{name}")
-        return getattr(importlib.import_module(MOVED_NAMES[name]), name)
     if name in MOVED_MODULES:
         return sys.modules[f"{__name__}.{name}"]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return moved_attribute(__name__, name, MOVED_NAMES)

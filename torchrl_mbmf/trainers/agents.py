@@ -1,10 +1,6 @@
 """The learning agents of the loop: PPO and SAC, each owning its networks, loss and optimiser.
 
-An agent is built from its own config group (``ppo.*`` or ``sac.*``) and the env, and offers
-the loop one interface: :meth:`~PPOAgent.update` (one collected batch in, the scalars to log
-out, or ``None`` when the batch took no update), the policy's log-std for the logs, the
-components a checkpoint must hold, and the value module a planner may use as its terminal
-value. No setting of one algorithm is read by the other.
+The agents' interface and their updates: ``docs/design/loop.md``.
 """
 
 from __future__ import annotations
@@ -56,9 +52,6 @@ SAC_Q_DISTANCES: tuple[str, ...] = ("smooth_l1", "l2")
 class Agent(Protocol):
     """What the loop needs of a learning agent: act, learn, and the state a checkpoint holds.
 
-    :class:`PPOAgent` and :class:`SACAgent` implement it; any class with these members can be
-    a config group's ``_target_``.
-
     Args:
         *args: none (a protocol is not instantiated).
         **kwargs: none.
@@ -100,13 +93,7 @@ class Agent(Protocol):
 
 
 class PPOAgent:
-    """Thesis PPO: stock :class:`~torchrl.objectives.ClipPPOLoss` with GAE, Adam.
-
-    One :meth:`update` per collected batch: GAE once, ``epochs`` passes of ``minibatch_size``
-    minibatches (through :class:`~torchrl_mbmf.objectives.fused_ppo.FusedPPOUpdate` unless
-    ``update=stock``). The builder of the ``ppo`` config group (its ``_target_``): the
-    keyword arguments are the group's keys (``configs/algo/ppo.yaml``), checked here
-    (:data:`ARGUMENTS`) before anything is built.
+    """Thesis PPO: stock :class:`~torchrl.objectives.ClipPPOLoss` with GAE, Adam (``ppo`` group).
 
     Args:
         env: the training env (sizes the networks).
@@ -255,13 +242,7 @@ class PPOAgent:
 
 
 class SACAgent:
-    """Standard SAC: stock :class:`~torchrl.objectives.SACLoss`, a replay buffer, soft targets.
-
-    :meth:`update` stores the batch and takes ``utd_ratio`` updates per collected frame past
-    ``init_random_frames`` (as Stable-Baselines3's ``learning_starts``), through
-    :class:`~torchrl_mbmf.objectives.fused_sac.FusedSACUpdate` unless ``update=stock``. The
-    builder of the ``sac`` config group (its ``_target_``): the keyword arguments are the group's
-    keys (``configs/algo/sac.yaml``), checked here (:data:`ARGUMENTS`) before anything is built.
+    """Standard SAC: stock :class:`~torchrl.objectives.SACLoss`, replay, soft targets (``sac``).
 
     Args:
         env: the training env (sizes the networks and the action bounds).
@@ -278,10 +259,8 @@ class SACAgent:
         gamma: discount.
         tau: soft target update rate.
         alpha_init: initial entropy coefficient.
-        loss_function: ``SACLoss``'s Q-regression distance, ``"l2"`` (the squared error of
-            SAC's paper and Stable-Baselines3; ``configs/algo/sac.yaml``) or ``"smooth_l1"``
-            (torchrl's default). Defaults to ``"smooth_l1"``, what a config without the key
-            means.
+        loss_function: ``SACLoss``'s Q-regression distance, ``"l2"`` (SAC's paper, SB3) or
+            ``"smooth_l1"`` (torchrl's default). Defaults to ``"smooth_l1"``.
         refit_every_steps: ``sac_mpc``'s world-model refit period in real steps (read by the
             :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule`).
         update: ``"fused"`` or ``"stock"``. Defaults to ``"stock"``.
@@ -427,9 +406,6 @@ def make_agent(
     device: torch.device,
 ) -> Agent:
     """The agent of ``method_family`` (``"ppo"`` or ``"sac"``) built from its group's settings.
-
-    The group's builder is its ``_target_`` (:class:`PPOAgent` or :class:`SACAgent` without
-    one), called with the group's keys.
 
     Args:
         method_family: ``"ppo"`` or ``"sac"``.

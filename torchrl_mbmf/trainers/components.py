@@ -1,19 +1,7 @@
 """Config groups as components: ``_target_`` + :func:`hydra.utils.instantiate`.
 
-Each component group of the train config names its builder in ``_target_``: ``ppo`` and
-``sac`` the agents (:class:`~torchrl_mbmf.trainers.agents.PPOAgent`,
-:class:`~torchrl_mbmf.trainers.agents.SACAgent`: networks, loss, optimiser), ``world_model``
-the model-based part (:class:`~torchrl_mbmf.trainers.planning.WorldModelPart`: the network,
-its fit and refit schedule), ``planner`` :func:`~torchrl_mbmf.trainers.planning.make_planner`
-and ``logger`` :func:`~torchrl_mbmf.trainers.build.make_logger`. A builder's keyword-only
-parameters are exactly its group's keys (their names are the config's); its other parameters
-are the runtime objects the trainer passes (env, device, actor). A builder forwards each key
-to the constructor it belongs to (``world_model.hidden_sizes`` to the network,
-``world_model.lr`` to the fit), and the constructors check their own arguments, naming them;
-:func:`instantiate_group` prefixes the group, so the error names the key a user typed
-(``planner.horizon must be an integer >= 1, got 0``). The builders' signatures are also the
-schema of the group's key names (:func:`group_keys`): an unknown key is refused before
-anything is built. :class:`Setting` is the check the constructors share.
+A builder's keyword-only parameters are its group's keys; the design:
+``docs/design/config.md``.
 """
 
 from __future__ import annotations
@@ -108,16 +96,13 @@ def _qualified(group: str, keys: Sequence[str], message: str) -> str:
 def instantiate_group(cfg: Any, group: str, **runtime: Any) -> Any:
     """Builds the component of config group ``group`` with :func:`hydra.utils.instantiate`.
 
-    The group's keys become the builder's keyword arguments, ``runtime`` its other ones
-    (objects: the same instances reach the builder). A group without ``_target_`` is built
-    with the group's :data:`DEFAULT_TARGETS` entry.
-
     Args:
-        cfg: the training config.
-        group: the group's name.
+        cfg: the training config (a group without ``_target_`` is built with its
+            :data:`DEFAULT_TARGETS` entry).
+        group: the group's name (its keys become the builder's keyword arguments).
 
     Keyword Args:
-        **runtime: the builder's runtime arguments.
+        **runtime: the builder's other arguments (the same objects reach the builder).
 
     Raises:
         ConfigError: the builder or a constructor refused an argument; the message names the
@@ -150,13 +135,10 @@ def instantiate_group(cfg: Any, group: str, **runtime: Any) -> Any:
 def qualified_error(group: str, keys: Sequence[str], err: TypeError | ValueError) -> ConfigError:
     """The :class:`ConfigError` of a group builder's error, naming the config key.
 
-    An error that already names another group's key (the planner built inside the world-model
-    part) is kept as it is.
-
     Args:
         group: the group whose builder raised.
         keys: the builder's keys.
-        err: the builder's error.
+        err: the builder's error (kept as it is if it names another group's key).
 
     Examples:
         >>> from torchrl_mbmf.trainers.components import qualified_error

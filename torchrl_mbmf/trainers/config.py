@@ -1,10 +1,6 @@
 """Validation of the training config: the trainer's own settings and the checks across keys.
 
-The component groups (``ppo``, ``sac``, ``world_model``, ``planner``, ``logger``) are built
-from their ``_target_`` (:mod:`~torchrl_mbmf.trainers.components`) and their constructors
-check each argument when the run builds them, before any work. Here: the trainer's own
-settings (:data:`TRAIN_SETTINGS`: the method, budgets, seed, env, reward, checkpoints), the
-key names of every group (unknown keys are refused), and the checks that span several keys.
+How the config is checked and parsed: ``docs/design/config.md``.
 """
 
 from __future__ import annotations
@@ -18,6 +14,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_mbmf.checks import ConfigError, Setting, check_number
+from torchrl_mbmf.device import DeviceError, resolve_device
 from torchrl_mbmf.envs.transforms.rewards import REWARDS
 from torchrl_mbmf.methods import GUIDED, METHODS, MODEL_BASED, PPO_METHODS
 from torchrl_mbmf.runs.resume import (
@@ -28,7 +25,6 @@ from torchrl_mbmf.runs.resume import (
     resume_changes,
 )
 from torchrl_mbmf.trainers.components import group_keys, group_target
-from torchrl_mbmf.trainers.device import DeviceError, resolve_device
 from torchrl_mbmf.world_model.branched_rollouts import check_mbpo_config
 
 __all__ = [
@@ -56,13 +52,8 @@ def _int(low: int | None = None, **kw: Any) -> Setting:
 
 _OPTIONAL = {"required": False}
 
-#: The trainer's own settings (flattened keys), with their type and range. The keys of the
-#: component groups (:data:`~torchrl_mbmf.trainers.components.DEFAULT_TARGETS`) are the
-#: keyword arguments of their builders, which check them; any other key of the composed
-#: config is refused as unknown (a typo such as ``planer.horizon`` would otherwise be
-#: ignored). The entries under ``reward.kwargs`` are checked against the reward's
-#: constructor; ``experiment`` (a preset's name and budgets) is free-form: its values reach
-#: the trainer only through the settings.
+#: The trainer's own settings (flattened keys), with their type and range; any other key that
+#: is not a component group's is refused as unknown.
 TRAIN_SETTINGS: dict[str, Setting] = {
     "method": Setting("choice", choices=METHODS),
     "seed": _int(0, high=MAX_SEED),
@@ -86,10 +77,9 @@ TRAIN_SETTINGS: dict[str, Setting] = {
     "collector": Setting("choice", choices=COLLECTORS, **_OPTIONAL),
     "device": Setting("str", **_OPTIONAL),
 }
-#: Subtrees whose keys are not fixed (see :data:`TRAIN_SETTINGS`).
+#: Subtrees whose keys are not fixed (``experiment``: a preset's name and budgets).
 FREE_FORM: tuple[str, ...] = ("experiment",)
-#: Top-level nodes that are not train settings: Hydra's own (present when a config is composed
-#: with ``return_hydra_config=True``); they are neither checked nor compared on resume.
+#: Top-level nodes that are not train settings (Hydra's own): neither checked nor compared.
 NOT_SETTINGS: tuple[str, ...] = ("hydra",)
 
 
@@ -111,10 +101,8 @@ def _resolved(cfg: Any) -> dict[str, Any]:
 def flatten_config(cfg: Any, prefix: str = "") -> dict[str, Any]:
     """Flattens a (resolved) config into ``{"a.b.c": value}``; lists and empty dicts are leaves.
 
-    Hydra's own node (``hydra``, see :data:`NOT_SETTINGS`) is left out of a ``DictConfig``.
-
     Args:
-        cfg: a ``DictConfig`` or a nested mapping.
+        cfg: a ``DictConfig`` (its ``hydra`` node left out) or a nested mapping.
         prefix: prepended to every key. Defaults to ``""``.
 
     Returns:
@@ -133,11 +121,9 @@ def flatten_config(cfg: Any, prefix: str = "") -> dict[str, Any]:
 def train_setting_keys(cfg: Any) -> dict[str, bool]:
     """Every key the train config may hold, with whether it is required.
 
-    The trainer's own (:data:`TRAIN_SETTINGS`) and, for each component group, ``_target_``
-    and its builder's keyword arguments (:func:`~torchrl_mbmf.trainers.components.group_keys`).
-
     Args:
-        cfg: the config (its ``_target_`` entries name the builders).
+        cfg: the config (its ``_target_`` entries name the builders, whose keyword-only
+            parameters are their group's keys).
 
     Examples:
         >>> from torchrl_mbmf.trainers.config import train_setting_keys
@@ -208,15 +194,7 @@ def _count(value: Any) -> int | None:
 
 
 def validate_train_config(cfg: Any) -> None:
-    """Checks a composed ``train`` config before anything is built.
-
-    The trainer's own settings (:data:`TRAIN_SETTINGS`) must be of their type and inside
-    their range; every key must be one of :func:`train_setting_keys` (unknown keys are
-    refused, naming the key and the setting probably meant); the reward's keyword arguments
-    must be accepted by its constructor; then the settings are checked against each other
-    (batch sizes, budgets, planner and world-model variants). A component group's own values
-    are checked by its constructor when the run builds it (before any work); a check across
-    keys skips a value its constructor will refuse.
+    """Checks a composed ``train`` config before anything is built (``docs/design/config.md``).
 
     Args:
         cfg: the composed config (an OmegaConf ``DictConfig`` or a nested dict).
@@ -394,10 +372,7 @@ def _check_world_model_variants(cfg: Any, method: str) -> None:
 
 @dataclass(frozen=True)
 class TrainSettings:
-    """The trainer's own settings, parsed once from a validated config.
-
-    The component groups (``ppo``, ``sac``, ``world_model``, ``planner``, ``logger``) are
-    parsed by their builders; these are what the loop itself reads while it runs.
+    """The trainer's own settings (what the loop reads while it runs), parsed once.
 
     Args:
         method: one of :data:`METHODS`.

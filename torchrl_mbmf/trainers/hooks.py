@@ -1,17 +1,7 @@
 """The hooks of the training loop: logging, progress, model refits, evaluation, checkpoints.
 
-A small hook list of our own rather than :class:`torchrl.trainers.Trainer`'s ``register_op``:
-torchrl's trainer iterates one collector for the whole run and takes a fixed
-``optim_steps_per_batch`` steps of one loss module per batch, while ours closes the collector
-and starts the next from freshly seeded envs at every checkpoint and phase change (what makes
-a resumed run bit-identical to an uninterrupted one), switches the acting policy between
-collectors, counts random-data steps in the budget, and leaves each batch's optimisation to
-the agent (PPO's GAE and epochs of minibatches in one fused call; SAC's update count that
-depends on its initial random frames). Each hook here is called once per collected batch
-(never per env step) with the trainer, and reads or advances its progress record.
-
-Stages (in loop order): ``collected`` (the batch is counted), ``updated`` (the agent has
-learnt from it) and ``round_end`` (its collector is closed).
+Stages (in loop order): ``collected``, ``updated`` and ``round_end``; why our own hook list:
+``docs/design/loop.md``.
 """
 
 from __future__ import annotations
@@ -52,25 +42,22 @@ STAGES: tuple[str, ...] = ("collected", "updated", "round_end")
 class Hook(abc.ABC):
     """A step the loop runs once per collected batch at one stage, with the trainer.
 
-    Subclasses implement ``__call__(trainer, batch)``; they read and advance
-    ``trainer.progress`` and use the trainer's parts (``agent``, ``world``, ``schedule``).
-
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import Hook
-        >>> class CountBatches(Hook):
-        ...     def __init__(self):
-        ...         self.count = 0
+        >>> class PrintBatch(Hook):
         ...     def __call__(self, trainer, batch):
-        ...         self.count += 1
-        >>> hook = CountBatches()
-        >>> hook(None, None)
-        >>> hook.count
-        1
+        ...         print("batch", batch)
+        >>> PrintBatch()(None, 1)
+        batch 1
     """
 
     @abc.abstractmethod
     def __call__(self, trainer: Trainer, batch: TensorDictBase | None) -> None:
-        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any)."""
+        """Runs the hook for ``trainer`` (``batch``: the batch just collected, if any).
+
+        It reads and advances ``trainer.progress`` and uses the trainer's parts (``agent``,
+        ``world``, ``schedule``).
+        """
 
 
 #: A hook: a :class:`Hook` or any callable ``(trainer, batch) -> None``.
@@ -107,15 +94,13 @@ class Hooks:
 class ProgressBar(Hook):
     """A ``tqdm`` bar of real steps (``collected``); disabled with ``progress=false``.
 
-    Its ETA is the run's phase-aware estimate (:class:`~torchrl_mbmf.trainers.progress.TrainerETA`:
-    random data, planning with refits and model-free steps at their measured rates).
-
     Args:
         total: the run's real-step budget.
         desc: the bar's label.
         enabled: whether the bar shows.
-        plan: the run's phases for the ETA (:meth:`RunPlan.from_config`); ``None``: no ETA.
-            Defaults to ``None``.
+        plan: the run's phases for the ETA (:meth:`RunPlan.from_config`,
+            :class:`~torchrl_mbmf.trainers.progress.TrainerETA`); ``None``: no ETA. Defaults
+            to ``None``.
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import ProgressBar
@@ -192,9 +177,7 @@ class EpisodeLog(Hook):
 
 
 class ModelData(Hook):
-    """Adds random-data and planner batches to the world model's dataset (``collected``).
-
-    Also logs the planner's statistics of a planned batch.
+    """Adds random-data and planner batches to the world model's dataset and logs the plans.
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import ModelData
@@ -212,9 +195,6 @@ class ModelData(Hook):
 
 class ModelRefit(Hook):
     """Refits the world model when the schedule says so (``updated``).
-
-    The refit's seed is ``seed + updates``; with an adaptive-horizon ensemble the refit
-    also calibrates the planner's disagreement threshold.
 
     Examples:
         >>> from torchrl_mbmf.trainers.hooks import ModelRefit
@@ -311,13 +291,6 @@ class Evaluation(Hook):
 
     def next_eval_at(self, real_steps: int, random_steps: int, frames_per_batch: int) -> int:
         """The ``next_eval`` a run with this schedule from its start holds at ``real_steps``.
-
-        The hook runs after every learning batch: at ``random_steps + k * frames_per_batch``
-        real steps (``k >= 1``; the random-data steps of a model-based run are not learnt
-        from). A resumed run whose ``eval_every`` changed takes this value, so from the
-        resume point on it evaluates at exactly the steps a fresh run with the new schedule
-        does (with batches no longer than ``every``: at the first batch that reaches each
-        multiple of ``every``).
 
         Args:
             real_steps: the real steps so far (a checkpoint's).

@@ -1,10 +1,4 @@
-"""The training loop of every method: model-free, MBMF planning phase, warm-start fine-tuning.
-
-:class:`Trainer` wires the parts of a run (envs, agent, world model and planner, hooks,
-checkpoints) and runs the loop: the :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule`
-says which policy acts, the agent learns from every batch, and the hooks
-(:mod:`~torchrl_mbmf.trainers.hooks`) log, refit the world model, evaluate and checkpoint.
-"""
+"""The training loop of every method: model-free, MBMF planning phase, warm-start fine-tuning."""
 
 from __future__ import annotations
 
@@ -23,24 +17,19 @@ from torchrl.envs.utils import RandomPolicy
 
 from torchrl_mbmf.checks import check_finite
 from torchrl_mbmf.collectors import LeanCollector
+from torchrl_mbmf.collectors.factory import evaluate_policy, make_collector
+from torchrl_mbmf.device import resolve_device
 from torchrl_mbmf.runs.checkpoint import RunCheckpoint
 from torchrl_mbmf.runs.claim import claim_run_folder
 from torchrl_mbmf.runs.layout import RunFolder, write_run_record
 from torchrl_mbmf.runs.resume import fingerprint
+from torchrl_mbmf.runs.signals import StopRequest
 from torchrl_mbmf.trainers.agents import Agent, make_agent
-from torchrl_mbmf.trainers.build import (
-    evaluate_policy,
-    make_collector,
-    make_hooks,
-    make_settings_env,
-    seed_everything,
-)
+from torchrl_mbmf.trainers.build import make_hooks, make_settings_env, seed_everything
 from torchrl_mbmf.trainers.config import TrainSettings
-from torchrl_mbmf.trainers.device import resolve_device
 from torchrl_mbmf.trainers.planning import WorldModelPart
 from torchrl_mbmf.trainers.schedule import Actor, Phase, PhaseSchedule, Progress
 from torchrl_mbmf.trainers.settings import TrainConfig
-from torchrl_mbmf.trainers.signals import StopRequest
 from torchrl_mbmf.world_model.branched_rollouts import BranchedRollouts, policy_as_planner
 
 __all__ = [
@@ -55,10 +44,6 @@ __all__ = [
 
 class Trainer:
     """Runs one training method end to end from a composed ``train`` config.
-
-    ``ppo``, ``mpc``, ``ppo_mpc``, ``sac``, ``sac_mpc`` or ``sac_mbpo``; every real step counts
-    toward ``total_steps``; a new ``Trainer`` on the same ``run_dir`` resumes from its latest
-    checkpoint to the uninterrupted run's weights. How: ``docs/design/loop.md``.
 
     Args:
         cfg: the composed config (see ``configs/train.yaml``).
@@ -130,8 +115,7 @@ class Trainer:
         )
         self.frames_per_batch = settings.frames_per_batch
         self.total_steps = settings.total_steps
-        # The folder is this run's (locked; a finished or foreign run refused) before anything
-        # is written to it; a refused setting above has written nothing.
+        # claimed (locked; finished or foreign runs refused) before anything is written to it
         self.lock = claim_run_folder(self.run_dir, config.record, restart=config.restart)
         self.logger = config.logger.build(run_dir=self.run_dir)
         self.hooks, named = make_hooks(config, self.schedule.model_based)
@@ -194,8 +178,7 @@ class Trainer:
             self.schedule.start_model_free(self.progress)
             self.log({"train/switch_to_model_free": 1.0})
         self.acting = self.schedule.actor(self.progress)
-        # Every collector starts from freshly seeded envs, so a resumed run continues
-        # exactly like an uninterrupted one (checkpoints happen between collectors).
+        # freshly seeded envs: a resumed run continues exactly like an uninterrupted one
         self.env.set_seed(self.settings.seed + self.progress.real_steps)
         collector = self.collector(self.acting, self.frames_per_batch, -1)
         lean = isinstance(collector, LeanCollector)
@@ -219,12 +202,7 @@ class Trainer:
         return self.schedule.round_over(progress, self.acting)
 
     def train(self) -> dict[str, Any]:
-        """Runs until ``total_steps`` real steps; returns (and writes) a summary.
-
-        A SIGTERM or SIGINT stops the run after its next scheduled checkpoint (see
-        :mod:`~torchrl_mbmf.trainers.signals`); the return value then says so and no summary is
-        written.
-        """
+        """Runs until ``total_steps`` real steps (or a signal's checkpoint); returns a summary."""
         try:
             with StopRequest() as stop:
                 return self._train(stop)

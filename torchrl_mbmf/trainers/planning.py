@@ -1,8 +1,7 @@
 """The model-based part of a run: world model, its data, its refits and the MPC planner.
 
-Built from the ``world_model`` and ``planner`` config groups, whose ``_target_`` are
-:class:`WorldModelPart` and :func:`make_planner`; the components' constructors check their
-arguments. The loop sees :class:`WorldModelPart`.
+Built from the ``world_model`` and ``planner`` config groups; the loop sees
+:class:`WorldModelPart`.
 """
 
 from __future__ import annotations
@@ -21,91 +20,32 @@ from torchrl.envs import EnvBase
 from torchrl_mbmf.checks import Setting, check_arguments, settings
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.envs.ensemble_env import EnsembleLearnedDynamicsEnv
-from torchrl_mbmf.envs.factory import action_bounds, env_metadata
-from torchrl_mbmf.envs.keys import STATE_KEY
+from torchrl_mbmf.envs.factory import env_metadata
 from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
-from torchrl_mbmf.envs.terminations import (
-    NEVER_TERMINATING,
-    RULES,
-    gym_id_and_kwargs,
-    termination_rule,
-)
-from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel, check_hidden_sizes
-from torchrl_mbmf.modules.ensemble import EnsembleDeltaDynamicsModel
+from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 from torchrl_mbmf.modules.planners import (
     EnsemblePolicyGuidedPlanner,
     PolicyGuidedMPCPlanner,
     RandomShootingMPCPlanner,
 )
-from torchrl_mbmf.modules.termination import LearnedTermination
+from torchrl_mbmf.moved import moved_attribute
 from torchrl_mbmf.trainers.agents import Agent
 from torchrl_mbmf.trainers.schedule import Progress
+from torchrl_mbmf.world_model import networks
 from torchrl_mbmf.world_model.ensemble_fit import calibrate_disagreement_threshold, fit_ensemble
 from torchrl_mbmf.world_model.fit import fit_dynamics, fit_dynamics_kwargs
 from torchrl_mbmf.world_model.snapshots import heldout_open_loop_errors, save_fit_snapshot
 from torchrl_mbmf.world_model.termination_fit import fit_termination
 
-__all__ = ["WorldModelPart", "make_planner", "make_termination_head", "make_world_model"]
+__all__ = ["WorldModelPart", "make_planner"]
+
+#: Names that moved to another module (kept here for one release, with a warning).
+MOVED_NAMES: dict[str, str] = {
+    "make_termination_head": "torchrl_mbmf.world_model.networks",
+    "make_world_model": "torchrl_mbmf.world_model.networks",
+}
 
 log = logging.getLogger(__name__)
-
-
-def make_world_model(
-    env: EnvBase,
-    *,
-    hidden_sizes: Sequence[int],
-    ensemble_size: int = 1,
-    probabilistic: bool = False,
-) -> DeltaDynamicsModel | EnsembleDeltaDynamicsModel:
-    """The world-model network of the ``world_model`` group's architecture keys, sized from ``env``.
-
-    Its state and action sizes and its action range are the env's (:func:`action_bounds`).
-
-    Args:
-        env: the real env (state and action sizes, action range; a float32 state).
-
-    Keyword Args:
-        hidden_sizes: hidden layers (checked by the network's constructor).
-        ensemble_size: members; ``1`` builds one :class:`~torchrl_mbmf.modules.DeltaDynamicsModel`
-            (the thesis), more an :class:`~torchrl_mbmf.modules.EnsembleDeltaDynamicsModel`.
-            Defaults to ``1``.
-        probabilistic: Gaussian outputs (ensemble only). Defaults to ``False``.
-
-    Examples:
-        >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.planning import make_world_model
-        >>> model = make_world_model(make_env("Pendulum-v1"), hidden_sizes=[8])
-        >>> type(model).__name__, model.action_low, model.action_high
-        ('DeltaDynamicsModel', -2.0, 2.0)
-
-    Raises:
-        ValueError: the env's state is not float32, or its action spec has no single range.
-    """
-    check_arguments(settings(positive_int=("ensemble_size",), flag=("probabilistic",)), locals())
-    state_spec = env.full_observation_spec_unbatched[STATE_KEY]
-    if state_spec.dtype != torch.float32:
-        raise ValueError(
-            f"the env's {STATE_KEY!r} is {state_spec.dtype}; the world model works in float32: "
-            "add torchrl.envs.DoubleToFloat() to the env (this package's builders do)"
-        )
-    state_dim = state_spec.shape[-1]
-    action_dim = env.full_action_spec_unbatched[env.action_key].shape[-1]
-    # the model's action range is the env's (no silent clip: Pendulum's is [-2, 2])
-    low, high = action_bounds(env)
-    hidden = check_hidden_sizes(hidden_sizes)
-    if ensemble_size > 1:
-        return EnsembleDeltaDynamicsModel(
-            state_dim,
-            action_dim,
-            num_members=ensemble_size,
-            hidden_sizes=hidden,
-            probabilistic=probabilistic,
-            action_low=low,
-            action_high=high,
-        )
-    return DeltaDynamicsModel(
-        state_dim, action_dim, hidden_sizes=hidden, action_low=low, action_high=high
-    )
 
 
 def make_planner(
@@ -127,10 +67,6 @@ def make_planner(
 ) -> TensorDictModuleBase:
     """The MPC planner of the ``planner`` config group (its ``_target_``).
 
-    The keyword arguments are the group's keys; each goes to the planner's constructor,
-    which checks it. The refinement keys reach the policy-guided planners only with a
-    ``refinement``.
-
     Args:
         model_env: the learned-dynamics env the planner imagines in (an ensemble env picks
             the ensemble planner).
@@ -141,11 +77,12 @@ def make_planner(
         value_module: the terminal value (used when ``terminal_value`` is true).
 
     Keyword Args:
-        num_candidates: candidate action sequences.
+        num_candidates: candidate action sequences (each key checked by the planner).
         horizon: imagined steps.
         discount: reward discount of a candidate's score. Defaults to ``1.0``.
         terminal_value: add ``discount^h V(s_h)`` to each score. Defaults to ``False``.
-        refinement: ``None``, ``"cem"`` or ``"mppi"`` (guided planners). Defaults to ``None``.
+        refinement: ``None``, ``"cem"`` or ``"mppi"`` (guided planners; the keys below
+            reach them only with a refinement). Defaults to ``None``.
         iterations: refinement rounds. Defaults to ``2``.
         policy_fraction: share of candidates kept from the policy. Defaults to ``1/3``.
         num_elites: CEM elites. Defaults to ``3``.
@@ -189,50 +126,10 @@ def make_planner(
     return PolicyGuidedMPCPlanner(model_env, actor, **kwargs)
 
 
-def make_termination_head(env: EnvBase, state_dim: int, device: torch.device) -> LearnedTermination:
-    """A :class:`~torchrl_mbmf.modules.LearnedTermination` for ``env``'s state, said in the log.
-
-    With ``world_model.learn_termination`` the head replaces the task's known rule (the user's
-    choice): the log says so once, naming the rule it replaces.
-
-    Args:
-        env: the real env (its task is named in the log).
-        state_dim: size of the state.
-        device: device of the head.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_mbmf.envs import make_env
-        >>> from torchrl_mbmf.trainers.planning import make_termination_head
-        >>> make_termination_head(make_env("Hopper-v5"), 12, torch.device("cpu")).state_dim
-        12
-    """
-    task, kwargs = gym_id_and_kwargs(env) or ("this task", {})
-    name = task.split("/")[-1]
-    if name.split("-")[0] in NEVER_TERMINATING:
-        what = "no terminal states by Gymnasium's rule (the head learns that from the data)"
-    elif name.split("-")[0] in RULES and name.endswith("-v5"):
-        rule = termination_rule(task, **kwargs)
-        what = f"a known termination rule ({type(rule).__name__}), not used"
-    else:
-        what = "no known termination rule"
-    log.info(
-        "world_model.learn_termination=true: imagined episodes end where a termination head "
-        "fitted on the real terminated flags predicts; %s has %s",
-        task,
-        what,
-    )
-    return LearnedTermination(state_dim).to(device)
-
-
 class WorldModelPart:
     """World model, optimiser, real-transition dataset and planner of a model-based run.
 
-    The builder of the ``world_model`` config group (its ``_target_``): the keyword arguments
-    are the group's keys. The part takes the whole group and forwards each key to what it
-    configures: the architecture keys to the network (:func:`make_world_model`), the fit keys
-    to the fit (:func:`~torchrl_mbmf.world_model.fit.fit_dynamics_kwargs`), and keeps the
-    schedule and record keys; each is checked here, before anything is built.
+    The ``world_model`` group's builder (``docs/design/world_model_fit.md``).
 
     Args:
         env: the real env.
@@ -246,7 +143,7 @@ class WorldModelPart:
         guided: the policy-guided planner (else random shooting, ``mpc``). Defaults to ``True``.
 
     Keyword Args:
-        hidden_sizes: the network's hidden layers (:func:`make_world_model`).
+        hidden_sizes: the network's hidden layers.
         ensemble_size: the network's members (1: the thesis' single model).
         probabilistic: Gaussian outputs (ensemble only). Defaults to ``False``.
         lr: the fit's Adam learning rate (as every fit key, passed to
@@ -265,10 +162,9 @@ class WorldModelPart:
         adaptive_horizon: calibrate the ensemble planner's disagreement threshold at every
             refit. Defaults to ``False``.
         disagreement_quantile: the held-out quantile of that threshold. Defaults to ``0.9``.
-        learn_termination: fit a :class:`~torchrl_mbmf.modules.LearnedTermination` head on
-            the real transitions' ``terminated`` flags after every model fit and end imagined
-            episodes where it predicts, instead of by the task's known rule (said once in
-            the log where the task has one). Defaults to ``False``.
+        learn_termination: fit a :class:`~torchrl_mbmf.modules.LearnedTermination` head after
+            every model fit; it ends imagined episodes instead of the task's rule. Defaults to
+            ``False``.
 
     Examples:
         >>> from torchrl_mbmf.trainers.planning import WorldModelPart
@@ -278,11 +174,9 @@ class WorldModelPart:
 
     #: The progress entry that keeps the calibrated disagreement threshold across a resume.
     CALIBRATED = "disagreement_threshold"
-    #: The progress entry holding the dataset's length at the last fit (rows after it are
-    #: held-out data of the policy's own episodes for the model that fit produced).
+    #: The progress entry holding the dataset's length at the last fit.
     LAST_FIT = "last_fit_transitions"
-    #: The range of each argument the part reads itself (the network's and the multi-step
-    #: fit's are checked by their constructors), checked by the constructor.
+    #: The range of each argument the part reads itself, checked by the constructor.
     ARGUMENTS: dict[str, Setting] = settings(
         positive_int=("random_steps", "refit_every", "batch_size", "max_epochs", "patience"),
         positive=("lr",),
@@ -333,14 +227,16 @@ class WorldModelPart:
         self.random_steps, self.refit_every = random_steps, refit_every
         self.save_fits, self.adaptive_horizon = save_fits, adaptive_horizon
         self.disagreement_quantile = float(disagreement_quantile)
-        self.model = make_world_model(
+        self.model = networks.make_world_model(
             env,
             hidden_sizes=hidden_sizes,
             ensemble_size=ensemble_size,
             probabilistic=probabilistic,
         ).to(device)
         self.termination = (
-            make_termination_head(env, self.model.state_dim, device) if learn_termination else None
+            networks.make_termination_head(env, self.model.state_dim, device)
+            if learn_termination
+            else None
         )
         env_cls = EnsembleLearnedDynamicsEnv if self.model.ensemble_size > 1 else LearnedDynamicsEnv
         model_env = env_cls(self.model, env, termination_fn=self.termination)
@@ -393,13 +289,6 @@ class WorldModelPart:
 
     def refit(self, seed: int, progress: Progress, run_dir: Path | None = None) -> dict[str, float]:
         """Refits the model on every real transition so far; returns the scalars to log.
-
-        With ``world_model.adaptive_horizon`` the ensemble's disagreement threshold is
-        calibrated on the fit's held-out split (which no member trained on) and recorded in
-        ``progress``. Before the fit, the single model being replaced is scored open loop on the
-        transitions collected since its own fit (``model/heldout_*``, with its own generator:
-        no training number changes); after it, with ``world_model.save_fits`` (the default)
-        and a ``run_dir``, the new weights are kept under ``run_dir/world_models/``.
 
         Args:
             seed: seed of the fit's split and minibatch order.
@@ -467,3 +356,7 @@ class WorldModelPart:
             quantile=self.disagreement_quantile,
         )
         return float(calibration.threshold)
+
+
+def __getattr__(name: str) -> object:
+    return moved_attribute(__name__, name, MOVED_NAMES)

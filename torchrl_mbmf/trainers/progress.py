@@ -1,29 +1,20 @@
 """An honest ETA for a run, from the phases it will go through and their measured rates.
 
-A run's real steps do not cost the same: random-policy steps fit the first world model at
-thousands of steps per second, planned steps cost a policy-guided plan each (a few ms), the
-model refits take minutes that grow with the dataset, and the model-free fine-tuning runs at
-the pace of the env and the agent's updates. A plain steps-per-second ETA (``tqdm``'s) is
-therefore wrong by an order of magnitude during the random-data phase. Here the remaining time
-is the sum over what is left of the run's :class:`RunPlan` (who acts over which real steps,
-and the dataset size of every model fit) of the per-actor seconds per step and the refit
-seconds per transition measured so far (:class:`PhaseETA`). The agent's pace before the
-model-free phase has begun is estimated as a random step plus the agent's update per step
-measured while planning.
+Why and how: ``docs/design/loop.md`` (the progress bar's ETA).
 """
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
+from torchrl_mbmf.moved import moved_attribute
+from torchrl_mbmf.runs import summary_text
 from torchrl_mbmf.trainers.schedule import Actor
 
 if TYPE_CHECKING:
@@ -34,29 +25,16 @@ __all__ = [
     "PhaseETA",
     "RunPlan",
     "TrainerETA",
-    "end_of_run_message",
-    "format_seconds",
 ]
+
+#: Names that moved to another module (kept here for one release, with a warning).
+MOVED_NAMES: dict[str, str] = {
+    "end_of_run_message": "torchrl_mbmf.runs.summary_text",
+    "format_seconds": "torchrl_mbmf.runs.summary_text",
+}
 
 #: ``tqdm``'s default layout without its step-rate ETA (``{remaining}``); ours is the postfix.
 BAR_FORMAT = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]"
-
-
-def format_seconds(seconds: float | None) -> str:
-    """``h:mm:ss`` (``?`` for an unknown duration).
-
-    Args:
-        seconds: a duration, or ``None``.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.progress import format_seconds
-        >>> format_seconds(3725.4), format_seconds(59), format_seconds(None)
-        ('1:02:05', '0:00:59', '?')
-    """
-    if seconds is None or not math.isfinite(seconds):
-        return "?"
-    s = round(max(0.0, seconds))
-    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
 @dataclass(frozen=True)
@@ -96,9 +74,7 @@ class RunPlan:
 
         Args:
             cfg: the composed training config or its parsed
-                :class:`~torchrl_mbmf.trainers.settings.TrainConfig` (``method``,
-                ``total_steps``, ``env.num_envs``, ``world_model``, ``planning_updates``,
-                ``ppo`` / ``sac``).
+                :class:`~torchrl_mbmf.trainers.settings.TrainConfig`.
 
         Examples:
             >>> from omegaconf import OmegaConf
@@ -160,21 +136,13 @@ class RunPlan:
         )
 
     def fits_left(self, real_steps: int) -> tuple[int, ...]:
-        """The fits still to come once ``real_steps`` steps are collected (not yet learnt from).
-
-        A fit at ``p`` transitions follows the batch that ends at ``p``: it is still due when
-        that batch has just been collected.
-        """
+        """The fits still to come once ``real_steps`` steps are collected (not yet learnt from)."""
         return tuple(p for p in self.fits if p >= real_steps)
 
 
 @dataclass
 class PhaseETA:
     """Remaining time of a :class:`RunPlan` from measured per-actor and per-fit rates.
-
-    Feed it each batch's wall time without model fits (:meth:`observe_batch`), the agent's
-    update time (:meth:`observe_update`) and every fit (:meth:`observe_fit`);
-    :meth:`remaining` is ``None`` until every rate it needs is measured or can be estimated.
 
     Args:
         plan: the run's plan.
@@ -220,11 +188,7 @@ class PhaseETA:
         self.fit_seconds += seconds
 
     def step_seconds(self, actor: Actor) -> float | None:
-        """Seconds per real step of ``actor``: measured, else estimated, else ``None``.
-
-        The agent's steps before any is measured: a random step (the env) plus the agent's
-        update per step measured while planning.
-        """
+        """Seconds per real step of ``actor``: measured, else estimated, else ``None``."""
         if self.steps.get(actor, 0) > 0:
             return self.seconds[actor] / self.steps[actor]
         if actor is Actor.AGENT and self.steps.get(Actor.RANDOM, 0) > 0 and self.update_steps:
@@ -253,11 +217,6 @@ class PhaseETA:
 
 class TrainerETA:
     """Feeds a :class:`PhaseETA` from a trainer's ``collected`` stage; returns the bar's text.
-
-    Between two ``collected`` calls the wall time goes to the actor that collected the batch,
-    minus the world-model fits in between (``trainer.times["refit_s"]``, each a fit on the
-    real transitions collected before it); the agent's update time is read from
-    ``trainer.times["update_s"]``.
 
     Args:
         plan: the run's plan.
@@ -302,47 +261,8 @@ class TrainerETA:
             self.eta.observe_batch(trainer.acting, size, max(0.0, now - self.last_time - refit))
         self.last_time, self.last_batch = now, size
         self.last_refit, self.last_update = self.last_refit + refit, self.last_update + update
-        return f"ETA {format_seconds(self.eta.remaining(steps))}"
+        return f"ETA {summary_text.format_seconds(self.eta.remaining(steps))}"
 
 
-def end_of_run_message(summary: dict[str, Any], run_dir: str | Path) -> str:
-    """What a finished run prints: its folder, the summary's headline numbers, what to run next.
-
-    Args:
-        summary: the run's summary (``summary.json``).
-        run_dir: the run folder.
-
-    Examples:
-        >>> from torchrl_mbmf.trainers.progress import end_of_run_message
-        >>> summary = {"method": "ppo", "env": "Pendulum-v1", "reward": "default", "seed": 0,
-        ...     "real_steps": 4000, "last10_mean_return": -1200.5, "final_eval_return": None,
-        ...     "seconds": 61.0}
-        >>> print(end_of_run_message(summary, "outputs/short/run"))
-        Run finished: outputs/short/run
-          ppo on Pendulum-v1, reward default, seed 0: 4,000 real steps in 0:01:01
-          last-10 mean return -1200.5, final evaluation return n/a
-        Analyse:  python recipes/analyze.py runs=[outputs/short] out_dir=outputs/short/analysis
-        Video:    python recipes/record.py run_dir=outputs/short/run
-    """
-    run_dir = Path(run_dir)
-
-    def number(key: str) -> str:
-        value = summary.get(key)
-        return "n/a" if value is None else f"{float(value):.1f}"
-
-    head = (
-        f"{summary.get('method')} on {summary.get('env')}, reward {summary.get('reward')}, "
-        f"seed {summary.get('seed')}: {int(summary.get('real_steps', 0)):,} real steps in "
-        f"{format_seconds(summary.get('seconds'))}"
-    )
-    parent = run_dir.parent.as_posix()
-    return "\n".join(
-        [
-            f"Run finished: {run_dir.as_posix()}",
-            f"  {head}",
-            f"  last-10 mean return {number('last10_mean_return')}, "
-            f"final evaluation return {number('final_eval_return')}",
-            f"Analyse:  python recipes/analyze.py runs=[{parent}] out_dir={parent}/analysis",
-            f"Video:    python recipes/record.py run_dir={run_dir.as_posix()}",
-        ]
-    )
+def __getattr__(name: str) -> object:
+    return moved_attribute(__name__, name, MOVED_NAMES)

@@ -1,10 +1,6 @@
 """The phase schedule of a run: which policy acts, when the model refits, when planning ends.
 
-Every method runs through the same phases (:class:`Phase`): model-based methods start with
-random-policy data for the first world model (``RANDOM``), plan (``PLANNING``) and, for
-``mpc`` / ``ppo_mpc``, switch to the agent alone after ``planning_updates`` updates
-(``MODEL_FREE``, the warm start); ``sac_mpc`` plans to the end; model-free methods start in
-``MODEL_FREE``, SAC acting randomly for its first ``sac.init_random_frames`` frames.
+The phases of each method: ``docs/design/loop.md``.
 """
 
 from __future__ import annotations
@@ -66,11 +62,6 @@ _OPTIONAL_ENTRIES: tuple[str, ...] = ("config", "disagreement_threshold", "last_
 @dataclass
 class Progress:
     """The loop's state: counts, phase, next due steps; what a checkpoint's ``progress`` holds.
-
-    Saved as one JSON object (:meth:`to_dict`, the keys are the field names) and restored in
-    place (:meth:`load_dict`), so checkpoints written when it was a plain ``dict`` load
-    unchanged; entries it does not know are kept in :attr:`extra` and written back.
-    ``progress["real_steps"]`` reads a field as the checkpoint code does.
 
     Args:
         real_steps: real env steps so far, random-data steps included.
@@ -167,10 +158,7 @@ class Progress:
 
 @dataclass(frozen=True)
 class PhaseSchedule:
-    """When each phase starts and ends and when the world model refits.
-
-    A :class:`Progress` (the loop's checkpointed state) holds ``phase``, ``real_steps``,
-    ``updates`` and ``next_refit``; the schedule only reads and advances it.
+    """When each phase starts and ends and when the world model refits (reads a :class:`Progress`).
 
     Args:
         model_based: whether the run has a world model (starts in ``Phase.RANDOM``).
@@ -275,10 +263,6 @@ class PhaseSchedule:
     def dataset_needed(self, progress: Progress) -> bool:
         """Whether the real-transition dataset can still be used (a checkpoint must hold it).
 
-        Only a model-based run that has switched to the model-free phase is done with it:
-        nothing refits the model there, so its checkpoints leave the dataset out and stay
-        small (about the agent's and the model's weights).
-
         Args:
             progress: the progress record.
 
@@ -309,9 +293,5 @@ class PhaseSchedule:
         return False
 
     def round_over(self, progress: Progress, actor: Actor) -> bool:
-        """Whether the collector that ``actor`` runs stops after the batch just used.
-
-        It stops when the policy changes (the phase switch included) and after every batch
-        of random actions: each such batch comes from freshly seeded envs.
-        """
+        """Whether the collector that ``actor`` runs stops after the batch just used."""
         return actor is Actor.RANDOM or self.switch_due(progress) or self.actor(progress) != actor

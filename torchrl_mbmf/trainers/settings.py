@@ -1,15 +1,6 @@
 """The train config parsed once into typed settings, one dataclass per config group.
 
-:class:`TrainConfig` mirrors the composed ``train`` config: the trainer's own keys as typed
-fields and each group as its dataclass (:class:`EnvSettings`, :class:`RewardSettings`,
-:class:`CheckpointSettings`, and the component groups :class:`PPOSettings`,
-:class:`SACSettings`, :class:`WorldModelSettings`, :class:`PlannerSettings`,
-:class:`LoggerSettings`, :class:`MBPOSettings`). :meth:`TrainConfig.from_config` validates the
-config (:func:`~torchrl_mbmf.trainers.config.validate_train_config`) and parses it; the trainer
-builds every part from these objects and reads the raw config no more. A component group's fields
-are its builder's keyword-only parameters with the builder's defaults (tested), and
-:meth:`GroupSettings.build` calls the builder (its ``_target_``) with them; the builders'
-constructors check each value and the error names the config key.
+:meth:`TrainConfig.from_config` validates and parses it; the design: ``docs/design/config.md``.
 """
 
 from __future__ import annotations
@@ -53,9 +44,6 @@ def _plain(node: Any) -> Any:
 @dataclass(frozen=True, kw_only=True)
 class GroupSettings:
     """A component group's settings: its builder (``_target_``) and the builder's keys.
-
-    Subclasses list the default builder's keyword-only parameters as fields, with its
-    defaults; values are kept as the config gives them (the builder checks them).
 
     Args:
         target: the builder's import path (``_target_``); ``""``: the group's default.
@@ -130,8 +118,7 @@ class PPOSettings(GroupSettings):
         critic_coeff: critic loss weight.
         gamma: discount.
         lmbda: GAE lambda.
-        lr: Adam's
-            learning rate.
+        lr: Adam's learning rate.
         max_grad_norm: gradient clip.
         hidden_sizes: MLP widths.
         distribution: the action distribution.
@@ -219,8 +206,7 @@ class WorldModelSettings(GroupSettings):
         val_fraction: held-out share.
         patience: early stopping.
         random_steps: random-policy steps before the first fit.
-        refit_every: refit period
-            in updates (PPO methods).
+        refit_every: refit period in updates (PPO methods).
         save_fits: keep each fit's weights. Defaults to ``True``.
         multi_step: k of the k-step loss. Defaults to ``1``.
         multi_step_weight: its weight. Defaults to ``1.0``.

@@ -52,7 +52,10 @@ class TightParams:
     network. A closing :class:`~tensordict.nn.AddStateIndependentNormalScale` gives a scale
     that does not depend on the observation: it is computed once and returned as the second
     element (``[action_dim]``). Calling the object rebuilds the function only after a tensor
-    of the network changed (in place, replaced or moved): the constant scale is a snapshot.
+    of the network changed (in place, replaced or moved): the constant scale is a snapshot,
+    checked on every call against the values it was computed from, since an in-place write
+    through ``.data`` leaves the version counters alone (a torchrl loss's
+    ``load_state_dict`` writes its parameters so).
 
     Args:
         net: the parameter network.
@@ -74,18 +77,28 @@ class TightParams:
         self._slots: list[tuple[dict[str, torch.Tensor | None], str]] | None = None
         self._built: tuple[ParamsFn, torch.Tensor | None] | None = None
         self._key: tuple[tuple[int, int, int], ...] | None = None
+        # (the scale parameter, a copy of the values the constant scale was computed from)
+        self._source: tuple[nn.Module, torch.Tensor] | None = None
 
     def __getstate__(self) -> dict[str, object]:
         # closures over the network: rebuilt after a copy or pickle
-        return {**self.__dict__, "_slots": None, "_built": None, "_key": None}
+        return {**self.__dict__, "_slots": None, "_built": None, "_key": None, "_source": None}
 
     def __call__(self) -> tuple[ParamsFn, torch.Tensor | None]:
         """``(params_fn, constant_scale or None)`` for the current weights."""
         key = self._version_key()
-        if key != self._key:
+        if key != self._key or not self._source_unchanged():
             self._built = self._build()
             self._key = key
         return self._built
+
+    def _source_unchanged(self) -> bool:
+        # the version key misses writes through ``.data``; the snapshot's few values are
+        # compared instead
+        if self._source is None:
+            return True
+        head, values = self._source
+        return torch.equal(head.state_independent_scale.detach(), values)
 
     def _version_key(self) -> tuple[tuple[int, int, int], ...]:
         # the chain holds the live weights; it is rebuilt when a tensor is replaced or moved,
@@ -99,12 +112,15 @@ class TightParams:
         head = layers[-1]
         if type(head) is AddStateIndependentNormalScale and len(head.scale_shape) == 1:
             body = _chain(layers[:-1])
-            scale = head(head.state_independent_scale.detach())[1]
+            source = head.state_independent_scale.detach()
+            scale = head(source)[1]
+            self._source = (head, source.clone())
 
             def constant_scale(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
                 return body(obs), scale
 
             return constant_scale, scale
+        self._source = None
         chain = _chain(layers)
 
         def params(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -71,13 +71,12 @@ class ActorSampler:
             self._upscale = self.distribution_kwargs.get("upscale", 5.0)
             self._mid, self._half = (high + low) / 2, (high - low) / 2
             self._affine = bool((high != 1.0).any() or (low != -1.0).any())
-        # log-probs in closed form where the distribution is exactly "Normal, then tanh (and
-        # the affine map to [low, high])" or an independent Normal, as torchrl builds them
+        # closed-form log-probs for exactly "Normal, then tanh (and the affine map to [low,
+        # high])" or an independent Normal, as torchrl builds them
         kwargs = set(self.distribution_kwargs)
         if self.distribution_class is TanhNormal:
-            self.closed_form_log_prob = kwargs <= {"low", "high", "tanh_loc", "upscale"} and (
-                not self._tanh_loc
-            )
+            self.closed_form_log_prob = kwargs <= {"low", "high", "tanh_loc", "upscale"}
+            self.closed_form_log_prob &= not self._tanh_loc
         else:
             self.closed_form_log_prob = self.distribution_class is IndependentNormal and not kwargs
 
@@ -140,9 +139,8 @@ class ActorSampler:
             loc: the distribution's location ``[..., action_dim]`` (not modified).
             scale: its scale, any tensor broadcastable to ``loc``.
             out: where to write the actions (any strides). Defaults to a new tensor.
-            noise: a contiguous buffer shaped like ``loc`` for the standard normal draw
-                (overwritten; the same numbers as a fresh one), used when ``loc`` is
-                contiguous. Defaults to a new tensor.
+            noise: a buffer shaped like ``loc`` for the draw (the same numbers as a fresh
+                one; used for a contiguous ``loc``). Defaults to a new tensor.
         """
         if noise is not None and loc.is_contiguous() and noise.shape == loc.shape:
             x = noise.normal_()  # what ``randn_like`` runs on its fresh tensor
@@ -200,12 +198,51 @@ class ActorSampler:
             >>> from torchrl_mbmf.modules import make_ppo_actor_critic
             >>> from torchrl_mbmf.modules.planners.sampling import ActorSampler
             >>> actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
-            >>> action, (loc, scale) = ActorSampler(actor).sample_with_params(torch.zeros(3))
-            >>> action.shape, loc.shape
+            >>> ActorSampler(actor).sample_with_params(torch.zeros(3))[0].shape
+            torch.Size([1])
+        """
+        # without autograd, the tight chain: the network's own ops on the same shape
+        params = None if torch.is_grad_enabled() else self._tight_at(observation, flat=False)
+        if params is None:
+            params = tuple(self._params_fn(observation))
+        return self._sample(params), params
+
+    def sampler_for_fixed_weights(
+        self,
+    ) -> Callable[[torch.Tensor], tuple[torch.Tensor, tuple[torch.Tensor, ...]]]:
+        """:meth:`sample_with_params` for a loop in which the actor's weights do not change.
+
+        Without autograd the tight chain is looked up once here (not at every call): the
+        returned function draws the same actions and returns the same ``loc`` and ``scale``
+        values as :meth:`sample_with_params` while the weights stay as they were when it was
+        made (a collector's batch: the policy is updated between batches). With autograd on,
+        or without a tight chain, it is :meth:`sample_with_params` itself.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl_mbmf.envs import make_gym_state_env
+            >>> from torchrl_mbmf.modules import make_ppo_actor_critic
+            >>> from torchrl_mbmf.modules.planners.sampling import ActorSampler
+            >>> actor, _ = make_ppo_actor_critic(make_gym_state_env("Pendulum-v1"))
+            >>> with torch.no_grad():
+            ...     draw = ActorSampler(actor).sampler_for_fixed_weights()
+            ...     action, (loc, scale) = draw(torch.zeros(3))
+            >>> action.shape, scale.shape
             (torch.Size([1]), torch.Size([1]))
         """
-        params = tuple(self._params_fn(observation))
-        return self._sample(params), params
+        tight = None if torch.is_grad_enabled() else self.tight_params()
+        if tight is None:
+            return self.sample_with_params
+        fn, constant = tight
+        sample = self._sample
+
+        def draw(observation: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+            loc, scale = fn(observation)
+            loc = loc.view(*observation.shape[:-1], loc.shape[-1])
+            scale = constant.expand_as(loc) if constant is not None else scale.reshape(loc.shape)
+            return sample((loc, scale)), (loc, scale)
+
+        return draw
 
     def _sample(self, params: tuple[torch.Tensor, ...]) -> torch.Tensor:
         if not self._fast:
@@ -225,10 +262,8 @@ class ActorSampler:
     def log_prob(self, observation: torch.Tensor, action: torch.Tensor) -> dict[str, torch.Tensor]:
         """Distribution parameters at ``observation`` and the log-prob of ``action`` under them.
 
-        For :class:`~torchrl.modules.TanhNormal` (without ``tanh_loc``) and
-        :class:`~torchrl.modules.IndependentNormal` the log-prob is computed in closed form,
-        step for step as the distributions compute it (equal to float rounding, without
-        building the distribution objects); other distributions use their ``log_prob``.
+        In closed form where :attr:`closed_form_log_prob` (see
+        :func:`~torchrl_mbmf.modules.planners.actor_params.normal_log_prob`).
         """
         params = self._tight_at(observation)
         if params is None:
@@ -240,16 +275,18 @@ class ActorSampler:
             out["log_prob"] = self.distribution(*params).log_prob(action)
         return out
 
-    def _tight_at(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """``(loc, scale)`` at ``observation`` (any batch shape) through the tight chain."""
+    def _tight_at(
+        self, observation: torch.Tensor, flat: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        # (loc, scale) through the tight chain: the rows as one 2-d batch, or the own shape
         tight = self.tight_params()
         if tight is None:
             return None
         fn, constant = tight
-        loc, scale = fn(observation.reshape(-1, observation.shape[-1]))
+        loc, scale = fn(observation.reshape(-1, observation.shape[-1]) if flat else observation)
         loc = loc.view(*observation.shape[:-1], loc.shape[-1])
-        if constant is not None:
-            return loc, constant.expand_as(loc).contiguous()
+        if constant is not None:  # a fresh tensor, as the network's own scale
+            return loc, constant.expand_as(loc).clone()
         return loc, scale.reshape(loc.shape)
 
     def log_prob_params(

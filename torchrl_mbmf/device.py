@@ -28,7 +28,7 @@ def resolve_device(value: str | torch.device) -> torch.device:
             key and what is available.
 
     Examples:
-        >>> from torchrl_mbmf.trainers.device import resolve_device
+        >>> from torchrl_mbmf.device import resolve_device
         >>> resolve_device("cpu")
         device(type='cpu')
         >>> resolve_device("auto").type in ("cpu", "cuda")
@@ -77,7 +77,7 @@ def keep_freed_memory(mmap_threshold: int = 256 * 2**20, trim_threshold: int = 2
         whether the settings were applied (``False`` where the C library is not glibc).
 
     Examples:
-        >>> from torchrl_mbmf.trainers.device import keep_freed_memory
+        >>> from torchrl_mbmf.device import keep_freed_memory
         >>> isinstance(keep_freed_memory(), bool)
         True
     """

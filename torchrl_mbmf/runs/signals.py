@@ -29,7 +29,7 @@ class StopRequest:
 
     Examples:
         >>> import os, signal
-        >>> from torchrl_mbmf.trainers.signals import StopRequest
+        >>> from torchrl_mbmf.runs.signals import StopRequest
         >>> with StopRequest() as stop:
         ...     os.kill(os.getpid(), signal.SIGTERM)
         ...     stop.requested
