@@ -88,6 +88,17 @@ def test_interrupted_seed_stops_contributing_after_its_last_step(tmp_path):
     np.testing.assert_allclose(curve.per_seed[1], [5.0, np.nan])
 
 
+@pytest.mark.parametrize(
+    ("method", "expected"),
+    [("mpc", 300), ("ppo_mpc", 300), ("sac_mpc", 300), ("sac_mbpo", 300), ("ppo", 0), ("sac", 0)],
+)
+def test_an_unfinished_run_counts_the_random_steps_of_its_world_model(tmp_path, method, expected):
+    # without a summary the random steps come from the config, for the methods that fit a model
+    make_run(tmp_path, method, 0, [1.0], random_steps=300, total_steps=5000)
+    (run,) = load_runs(tmp_path)
+    assert not run.complete and run.random_steps == expected
+
+
 def test_ppo_maximum_table_with_and_without_random_steps(tmp_path):
     # PPO peaks at 40 at step 4000. PPO-MPC (500 random steps, then 200-step episodes) passes
     # 40 with its 11th episode of its own policy, at 500 + 11 * 200 = 2700 real steps.

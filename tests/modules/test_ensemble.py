@@ -585,6 +585,148 @@ def test_cyclic_path_without_statistics_gives_the_same_plan(cheetah, policy):
     )
 
 
+# ----------------------------------------------------------------- refinement (LOOP's acting)
+@pytest.mark.parametrize("refinement", ["cem", "mppi"])
+def test_refined_plan_on_identical_members_is_the_single_model_refined_plan(
+    cheetah, policy, refinement
+):
+    # An ensemble of one is the thesis network, which the single-model planner plans with (the
+    # ensemble planner needs K >= 2): K identical members stand in for it here.
+    single = region_ensemble(cheetah, spread=torch.zeros(1)).member(0)
+    same = region_ensemble(cheetah, spread=torch.zeros(3))
+    kwargs = {
+        "num_candidates": 15,
+        "horizon": 6,
+        "value_module": clock_value(),
+        "discount": 0.95,
+        "refinement": refinement,
+        "iterations": 3,
+    }
+    plain = PolicyGuidedMPCPlanner(LearnedDynamicsEnv(single, cheetah), policy, **kwargs)
+    ens = EnsemblePolicyGuidedPlanner(LearnedDynamicsEnv(same, cheetah), policy, **kwargs)
+    td = make_half_cheetah_env(num_envs=3, seed=2).reset()
+    torch.manual_seed(3)
+    p0 = plain.plan(td.clone())
+    torch.manual_seed(3)
+    p1 = ens.plan(td.clone())
+    assert p1.returns.shape == p0.returns.shape == (3, 15 * 4)
+    torch.testing.assert_close(p1.returns, p0.returns, rtol=1e-5, atol=1e-5)
+    assert torch.equal(p1.best, p0.best)
+    torch.testing.assert_close(p1.action, p0.action)
+    assert (p1.trusted_steps == 6).all() and p1.disagreement.shape == (3, 60, 6)
+    # the refined rounds found better candidates than the policy round
+    assert (p1.returns[:, 15:].amax(-1) > p1.returns[:, :15].amax(-1)).all()
+
+
+def member_scaled_ensemble(real):
+    """:func:`region_ensemble` whose member ``k`` rewards ``(k + 1) C . clip(a)``."""
+    model = region_ensemble(real)
+    with torch.no_grad():
+        for k in range(len(SPREAD)):
+            model.net[2].weight[k, :12, 18] *= k + 1
+    return model
+
+
+def member_scores(state, actions, threshold, discount):
+    """Trusted steps and scores of candidates ``[B, m, h, 6]`` of :func:`member_scaled_ensemble`
+    by the closed form, candidate ``i`` in member ``i mod K``, value the clock."""
+    b, m, h, _ = actions.shape
+    s = state.unsqueeze(-2).expand(b, m, 18).clone()
+    scale = (torch.arange(m) % len(SPREAD) + 1).float()
+    std = SPREAD.std(unbiased=False).item()
+    trusted = torch.full((b, m), h)
+    scores = torch.zeros(b, m)
+    alive = torch.ones(b, m, dtype=torch.bool)
+    margin = math.inf
+    for t in range(h):
+        a = actions[..., t, :].clamp(-1, 1)
+        d = std * torch.relu(s[..., 1] - CUT) / 18
+        margin = min(margin, (d - threshold).abs().min().item())
+        alive = alive & (d <= threshold)
+        trusted = torch.where(alive | (trusted < h), trusted, torch.full_like(trusted, t))
+        scores += alive * discount**t * scale * (a * C).sum(-1)
+        s[..., 1:7] += a
+        s[..., 17] += 1
+    scores += discount**trusted * (state[..., 17:18] + trusted)
+    assert margin > 1e-4  # no candidate sits on the threshold: the float path cannot flip it
+    return trusted, scores
+
+
+@pytest.mark.parametrize("refinement", ["cem", "mppi"])
+def test_refinement_scores_every_round_in_the_candidates_own_member(cheetah, policy, refinement):
+    env = EnsembleLearnedDynamicsEnv(member_scaled_ensemble(cheetah), cheetah)
+    m, h, rounds, threshold, discount = 15, 6, 3, 0.008, 0.9
+    kwargs = {"num_candidates": m, "horizon": h, "value_module": clock_value()}
+    kwargs.update(disagreement_threshold=threshold, discount=discount)
+    plain = EnsemblePolicyGuidedPlanner(env, policy, **kwargs)
+    planner = EnsemblePolicyGuidedPlanner(
+        env, policy, refinement=refinement, iterations=rounds - 1, num_elites=4, **kwargs
+    )
+    rollouts, refits, sequences = [], [], []
+
+    def rollout(state, source=None):
+        rollouts.append(type(planner).rollout(planner, state, source))
+        return rollouts[-1]
+
+    def refit(actions, returns):
+        refits.append((actions, returns, *type(planner)._refit(planner, actions, returns)))
+        return refits[-1][2:]
+
+    def refined(rollout, returns):
+        sequences.append(type(planner).refined_sequences(planner, rollout, returns))
+        return sequences[-1]
+
+    planner.rollout, planner._refit, planner.refined_sequences = rollout, refit, refined
+    td = make_half_cheetah_env(num_envs=2, seed=1).reset()
+    state = torch.zeros(2, 18)
+    state[1, 1] = 0.4  # the second real state starts near the uncertain region
+    state[:, 17] = torch.tensor([0.0, 3.0])
+    td["state"], td["observation"] = state, state[:, 1:]
+    torch.manual_seed(7)
+    first = plain.plan(td.clone())
+    torch.manual_seed(7)
+    plan = planner.plan(td.clone())
+    assert len(rollouts) == rounds and plan.returns.shape == (2, rounds * m)
+    # the policy round is the unrefined plan, drawn identically
+    torch.testing.assert_close(plan.returns[:, :m], first.returns)
+    n_policy = round(m / 3)
+    for r, out in enumerate(rollouts):
+        # every candidate of every round: its own member's truncated return plus the value
+        trusted, scores = member_scores(state, out.actions, threshold, discount)
+        assert torch.equal(plan.trusted_steps[:, r * m : (r + 1) * m], trusted)
+        torch.testing.assert_close(plan.returns[:, r * m : (r + 1) * m], scores)
+        if r == 0:
+            continue
+        # a refined round: policy samples first, then the sequences drawn from the Gaussian
+        # refitted to the previous round's candidates and their own-member scores
+        torch.testing.assert_close(out.actions[:, n_policy:], sequences[r - 1])
+        actions, returns, mean, std = refits[r - 1]
+        assert torch.equal(actions, rollouts[r - 1].actions)
+        assert torch.equal(returns, plan.returns[:, (r - 1) * m : r * m])
+        if refinement == "cem":
+            elite = returns.topk(4, dim=-1).indices
+            chosen = torch.stack([actions[b, elite[b]] for b in range(2)])
+            expected_mean, expected_std = chosen.mean(1), chosen.std(1, unbiased=False)
+        else:
+            z = (returns - returns.amax(-1, keepdim=True)) / returns.std(-1, keepdim=True)
+            w = torch.softmax(z, -1)[..., None, None]
+            expected_mean = (w * actions).sum(1)
+            expected_std = (w * (actions - expected_mean[:, None]).square()).sum(1).sqrt()
+        torch.testing.assert_close(mean, expected_mean)
+        torch.testing.assert_close(std, expected_std.clamp_min(0.05))
+    assert (plan.trusted_steps < h).any() and (plan.trusted_steps == h).any()
+    assert torch.equal(plan.best, plan.returns.argmax(-1))
+    # the written action, horizon and disagreement are over all rounds' candidates
+    rollouts.clear()
+    torch.manual_seed(7)
+    out = planner(td.clone())
+    torch.testing.assert_close(out["action"], plan.action)
+    expected_h = plan.trusted_steps.gather(-1, plan.best[:, None]).float()
+    torch.testing.assert_close(out["planner", "effective_horizon"], expected_h)
+    disagreement = torch.cat([o.disagreement for o in rollouts], dim=-2)
+    torch.testing.assert_close(out["planner", "disagreement"], disagreement.mean((-2, -1))[:, None])
+
+
 def test_planner_rejects_bad_settings(cheetah, policy):
     model = EnsembleDeltaDynamicsModel(18, 6, num_members=2, hidden_sizes=(8,))
     env = LearnedDynamicsEnv(model, cheetah)

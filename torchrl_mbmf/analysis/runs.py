@@ -17,10 +17,12 @@ from typing import Any
 import numpy as np
 
 from torchrl_mbmf.analysis.stats import Interval, bootstrap_ci, first_step_reaching
+from torchrl_mbmf.methods import MODEL_BASED
 from torchrl_mbmf.runs.export import variant_tag
 from torchrl_mbmf.runs.layout import CONFIG, RunFolder
 
-MODEL_BASED_METHODS = ("mpc", "ppo_mpc", "sac_mpc")
+#: The methods that fit a world model on random data first (``sac_mbpo`` included).
+MODEL_BASED_METHODS = MODEL_BASED
 RETURN_CURVE = "train/return_last10_mean"
 
 
@@ -58,7 +60,7 @@ class Run:
 
     @property
     def method(self) -> str:
-        """The training method (``ppo``, ``mpc``, ``ppo_mpc``, ``sac`` or ``sac_mpc``)."""
+        """The training method: one of :data:`torchrl_mbmf.methods.METHODS`."""
         return str(self.config["method"])
 
     @property

@@ -358,11 +358,6 @@ def _check_world_model_variants(cfg: Any, method: str) -> None:
             f"world_model.ensemble_size={members} plans with the ensemble policy-guided planner; "
             f"it needs method ppo_mpc or sac_mpc (or sac_mbpo), got method={method!r}"
         )
-    if members > 1 and cfg["planner"].get("refinement"):
-        raise ConfigError(
-            "planner.refinement is not supported with world_model.ensemble_size > 1; set one "
-            "of them back (planner.refinement=null or world_model.ensemble_size=1)"
-        )
     if members > 1 and (_count(wm.get("multi_step", 1)) or 1) > 1:
         raise ConfigError(
             "world_model.multi_step > 1 is implemented for the single model only; set "

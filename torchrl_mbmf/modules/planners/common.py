@@ -218,7 +218,8 @@ class ShootingPlanner(CandidateScoring, MPCPlannerBase, metaclass=abc.ABCMeta):
         """Expands, rolls out, scores and selects the candidates of every batch element.
 
         With ``refinement_rounds``, later rounds roll out the mixture of the candidate
-        source and :meth:`refined_sequences`; the plan is over every round's candidates.
+        source and :meth:`refined_sequences`; the plan is over every round's candidates (and
+        their trusted steps and disagreement, when the rollouts record them).
 
         Args:
             tensordict: real states, batch ``[*B]``.
@@ -238,16 +239,21 @@ class ShootingPlanner(CandidateScoring, MPCPlannerBase, metaclass=abc.ABCMeta):
                 return self.plan_class(
                     out.first_actions, returns, best, out.trusted_steps, out.disagreement
                 )
-            firsts, scores = [out.first_actions], [returns]
+            rounds = [(out, returns)]
             for _ in range(self.refinement_rounds):
                 source = SequenceMixture(
                     self.candidate_source(), self.refined_sequences(out, returns)
                 )
                 out, returns = self._scored(state, source)
-                firsts.append(out.first_actions)
-                scores.append(returns)
-            returns = torch.cat(scores, dim=-1)
-            return Plan(torch.cat(firsts, dim=-2), returns, select_best(returns))
+                rounds.append((out, returns))
+            returns = torch.cat([r for _, r in rounds], dim=-1)
+            return self.plan_class(
+                torch.cat([o.first_actions for o, _ in rounds], dim=-2),
+                returns,
+                select_best(returns),
+                _joined([o.trusted_steps for o, _ in rounds], dim=-1),
+                _joined([o.disagreement for o, _ in rounds], dim=-2),
+            )
 
     def planning(self, td: TensorDictBase) -> torch.Tensor:
         """The action to execute now ``[*B, action_dim]`` (``MPCPlannerBase`` contract)."""
@@ -283,6 +289,11 @@ class ShootingPlanner(CandidateScoring, MPCPlannerBase, metaclass=abc.ABCMeta):
             for name, value in plan.statistics().items():
                 out.set((self.stats_key, name), value)
         return out
+
+
+def _joined(parts: list[torch.Tensor | None], dim: int) -> torch.Tensor | None:
+    """The rounds' per-candidate records side by side, or ``None`` when the rounds have none."""
+    return None if parts[0] is None else torch.cat(parts, dim=dim)
 
 
 def _check_sizes(num_candidates: int, horizon: int, discount: float) -> None:

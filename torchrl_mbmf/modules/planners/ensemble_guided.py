@@ -68,10 +68,22 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
     disagreement is not needed and each candidate goes through its own member only (candidates
     grouped ``[*B, m] -> [*B, m/K, K]``, one model's FLOPs); both paths give the same plan.
 
+    **Refinement** (``refinement="cem"`` or ``"mppi"``, LOOP's acting with ``"mppi"`` and a
+    min-Q ``value_module``): the rounds of
+    :class:`~torchrl_mbmf.modules.PolicyGuidedMPCPlanner`'s refinement, with the ensemble's
+    score in every round. Candidate ``i`` of every round (the first
+    ``round(policy_fraction * m)`` closed-loop policy samples, then the open-loop sequences
+    drawn from the refitted Gaussian) rolls in member ``i mod K`` and is scored by that
+    member's return, the score that picks the action without refinement (not the members'
+    mean return, nor a pessimistic minimum over members): CEM's elites and MPPI's weights
+    ``softmax((R - max R) / (temperature * std R))`` are taken over these single-member
+    scores, and the executed action is the first action of the best candidate over all
+    rounds. The adaptive horizon and terminations cut the score in every round.
+
     Besides ``best_return`` and ``mean_return``, ``stats_key`` receives
     ``effective_horizon`` (the chosen candidate's trusted steps, ``[*B, 1]``) and
-    ``disagreement`` (the mean disagreement over all candidates and imagined steps of the
-    plan, ``[*B, 1]``).
+    ``disagreement`` (the mean disagreement over all candidates, of every round, and imagined
+    steps of the plan, ``[*B, 1]``).
 
     Args:
         env: a :class:`~torchrl_mbmf.envs.LearnedDynamicsEnv` (or
@@ -82,11 +94,14 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
         disagreement_threshold: disagreement above which an imagined step is not trusted, or
             ``None`` for the full horizon. Defaults to ``None``.
         **kwargs: the keyword arguments of
-            :class:`~torchrl_mbmf.modules.planners.ShootingPlanner`, with its defaults (a
+            :class:`~torchrl_mbmf.modules.PolicyGuidedMPCPlanner`, with its defaults (a
             ``value_module`` is evaluated at each candidate's last trusted state):
             ``num_candidates`` (``m = 15``), ``horizon`` (``h = 10``), ``value_module``
             (none: the thesis), ``value_key``, ``discount`` (``1.0``), ``action_key``,
-            ``log_prob_key`` and ``stats_key`` (``"planner"``).
+            ``log_prob_key``, ``stats_key`` (``"planner"``), and the refinement's
+            ``refinement`` (``None``), ``iterations`` (``2``), ``num_elites`` (``3``),
+            ``policy_fraction`` (``1/3``), ``temperature`` (``1.0``) and ``min_std``
+            (``0.05``).
 
     Examples:
         >>> from torchrl_mbmf.envs import EnsembleLearnedDynamicsEnv, make_gym_state_env
@@ -134,10 +149,6 @@ class EnsemblePolicyGuidedPlanner(PolicyGuidedMPCPlanner):
                     f"disagreement_threshold must be > 0 (or None for the full horizon), got "
                     f"{disagreement_threshold}"
                 )
-        if kwargs.get("refinement") is not None:
-            raise ValueError(
-                f"refinement={kwargs['refinement']!r} is not available on the ensemble planner"
-            )
         super().__init__(env, actor, **kwargs)
         self.disagreement_threshold = (
             None if disagreement_threshold is None else float(disagreement_threshold)
