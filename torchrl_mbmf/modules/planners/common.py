@@ -239,21 +239,7 @@ class ShootingPlanner(CandidateScoring, MPCPlannerBase, metaclass=abc.ABCMeta):
                 return self.plan_class(
                     out.first_actions, returns, best, out.trusted_steps, out.disagreement
                 )
-            rounds = [(out, returns)]
-            for _ in range(self.refinement_rounds):
-                source = SequenceMixture(
-                    self.candidate_source(), self.refined_sequences(out, returns)
-                )
-                out, returns = self._scored(state, source)
-                rounds.append((out, returns))
-            returns = torch.cat([r for _, r in rounds], dim=-1)
-            return self.plan_class(
-                torch.cat([o.first_actions for o, _ in rounds], dim=-2),
-                returns,
-                select_best(returns),
-                _joined([o.trusted_steps for o, _ in rounds], dim=-1),
-                _joined([o.disagreement for o, _ in rounds], dim=-2),
-            )
+            return _refined_plan(self, state, out, returns)
 
     def planning(self, td: TensorDictBase) -> torch.Tensor:
         """The action to execute now ``[*B, action_dim]`` (``MPCPlannerBase`` contract)."""
@@ -289,6 +275,27 @@ class ShootingPlanner(CandidateScoring, MPCPlannerBase, metaclass=abc.ABCMeta):
             for name, value in plan.statistics().items():
                 out.set((self.stats_key, name), value)
         return out
+
+
+def _refined_plan(
+    planner: ShootingPlanner, state: torch.Tensor, out: ImaginedRollout, returns: torch.Tensor
+) -> Plan:
+    """The plan over the first round ``(out, returns)`` and ``refinement_rounds`` more."""
+    rounds = [(out, returns)]
+    for _ in range(planner.refinement_rounds):
+        source = SequenceMixture(
+            planner.candidate_source(), planner.refined_sequences(out, returns)
+        )
+        out, returns = planner._scored(state, source)
+        rounds.append((out, returns))
+    returns = torch.cat([r for _, r in rounds], dim=-1)
+    return planner.plan_class(
+        torch.cat([o.first_actions for o, _ in rounds], dim=-2),
+        returns,
+        select_best(returns),
+        _joined([o.trusted_steps for o, _ in rounds], dim=-1),
+        _joined([o.disagreement for o, _ in rounds], dim=-2),
+    )
 
 
 def _joined(parts: list[torch.Tensor | None], dim: int) -> torch.Tensor | None:
