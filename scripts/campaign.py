@@ -414,13 +414,52 @@ def _run_env(folder: Path) -> tuple[object, int]:
     return make_train_env(cfg, int(cfg.seed)), int(cfg.seed)
 
 
+def run_rollouts(folder: Path) -> object | None:
+    """Rollouts built like a ``sac_mbpo`` run's (from its ``config.yaml``), else ``None``.
+
+    They re-run the rollout rounds of its model replay when its checkpoint is compacted or
+    rebuilt (their parameters are loaded from the checkpoint's round record).
+
+    Args:
+        folder: the run folder.
+    """
+    import torch
+    from omegaconf import OmegaConf
+
+    from torchrl_mbmf.trainers.agents import make_agent
+    from torchrl_mbmf.trainers.build import make_train_env
+    from torchrl_mbmf.trainers.settings import TrainConfig
+    from torchrl_mbmf.world_model.branched_rollouts import policy_as_planner
+
+    cfg = OmegaConf.load(folder / "config.yaml")
+    if cfg.get("method") != "sac_mbpo":
+        return None
+    config = TrainConfig.from_config(cfg)
+    settings = config.settings
+    env = make_train_env(cfg, settings.seed)
+    device = torch.device("cpu")
+    agent = make_agent(settings.family, env, config.agent, device)
+    world = config.world_model.build(
+        env=env, agent=agent, device=device, planner=policy_as_planner, seed=settings.seed
+    )
+    return config.mbpo.build(
+        world_model=world.model,
+        env=env,
+        actor=agent.actor,
+        keys=agent.loss.in_keys,
+        termination_fn=world.termination,
+        device=device,
+    )
+
+
 def _compact(folder: Path, checkpoint: Path, target: Path) -> bool:
     """Writes ``checkpoint`` compacted to ``target`` if it fits :data:`COMPACT_CHECKPOINT_BYTES`."""
     from torchrl_mbmf.runs.dataset_replay import compact_checkpoint
 
     try:
         env, seed = _run_env(folder)
-        compact_checkpoint(checkpoint, target, env, seed=seed)
+        rollouts = run_rollouts(folder)
+        compact_checkpoint(checkpoint, target, env, seed=seed, rollouts=rollouts)
     except Exception as err:  # a run that cannot be compacted is copied without a checkpoint
         shutil.rmtree(target, ignore_errors=True)
         print(f"{folder.name}: {checkpoint.name} not compacted: {err}", file=sys.stderr)
@@ -489,17 +528,18 @@ def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
 
 
 def _expand(folder: Path, checkpoint: Path) -> bool:
-    """Rebuilds a compacted checkpoint's dataset in place (``False``: it held none to rebuild)."""
+    """Rebuilds a compacted checkpoint in place (``False``: it holds nothing to rebuild)."""
     if not (checkpoint / "manifest.json").exists():
         return False
     manifest = json.loads((checkpoint / "manifest.json").read_text())
     paths = [entry["path"] for entry in manifest.get("components", {}).values()]
-    if not any((checkpoint / path / "replay").is_dir() for path in paths):
+    records = ("replay", "rebuild")  # the dataset's and the replay buffers' rebuild records
+    if not any((checkpoint / path / name).is_dir() for path in paths for name in records):
         return False
     from torchrl_mbmf.runs.dataset_replay import expand_checkpoint
 
     env, _ = _run_env(folder)
-    return expand_checkpoint(checkpoint, env)
+    return expand_checkpoint(checkpoint, env, rollouts=run_rollouts(folder))
 
 
 def run_one(root: Path, run: QueuedRun, results: Path | None, restart: bool) -> int:

@@ -12,12 +12,15 @@ A checkpoint is a folder ``<run_dir>/checkpoints/<step>/`` written by :class:`Ru
 - ``dataset``: the real-transition dataset (model-based methods), left out where the
   schedule no longer needs it (after planning ends);
 - ``replay``: SAC's replay buffer entries;
-- ``model_replay``: ``sac_mbpo``'s imagined transitions (stored whole).
+- ``model_replay``: ``sac_mbpo``'s imagined transitions, and ``model_rounds``: what re-runs
+  the rollout rounds they come from
+  (:class:`~torchrl_mbmf.world_model.branched_rollouts.RolloutRounds`).
 
 Beside each checkpoint the trained policy is exported (``policy.pt``). How the folders are
 written and checked is :mod:`torchrl_mbmf.runs.storage`; what a resume may change is
 :mod:`torchrl_mbmf.runs.resume`; a compact, committable form of a checkpoint is
-:func:`~torchrl_mbmf.runs.dataset_replay.compact_checkpoint`.
+:func:`~torchrl_mbmf.runs.dataset_replay.compact_checkpoint` (the dataset and both replays
+kept as what rebuilds them exactly).
 """
 
 from __future__ import annotations
@@ -52,7 +55,10 @@ from torchrl_mbmf.runs.storage import (
     latest_intact_checkpoint,
 )
 
-__all__ = ["ProgressAdapter", "ProgressRecord", "RunCheckpoint"]
+__all__ = ["ModelReplaySource", "ProgressAdapter", "ProgressRecord", "RunCheckpoint"]
+
+#: Components a checkpoint written before they existed lacks (a resume goes on without them).
+OPTIONAL_COMPONENTS = ("model_rounds",)
 
 logger = logging.getLogger(__name__)
 
@@ -80,6 +86,24 @@ class ProgressRecord(Protocol):
     def get(self, key: str, default: Any = None) -> Any:
         """The entry ``key``, ``default`` if it is missing."""
         ...
+
+
+class ModelReplaySource(Protocol):
+    """What ``sac_mbpo``'s model replay is checkpointed from (a ``BranchedRollouts``).
+
+    Args:
+        *args: none (a protocol is not instantiated).
+        **kwargs: none.
+
+    Examples:
+        >>> from torchrl_mbmf.world_model.branched_rollouts import BranchedRollouts
+        >>> sorted(ModelReplaySource.__annotations__)
+        ['keys', 'replay', 'rounds']
+    """
+
+    replay: TensorDictReplayBuffer
+    keys: Sequence[NestedKey]
+    rounds: Any
 
 
 class ProgressAdapter(JSONCheckpointAdapter):
@@ -139,8 +163,8 @@ class RunCheckpoint:
             (``None``: always). A checkpoint written where it is not needed leaves it out,
             and resuming from one leaves the dataset as it is.
         replay: ``(buffer, keys)``: the replay buffer and the entries it stores, if any.
-        model_replay: ``(buffer, keys)``: the imagined transitions' replay (``sac_mbpo``),
-            stored whole (they cannot be rebuilt from the real data), if any.
+        model_replay: the rollouts of ``sac_mbpo`` (their ``replay`` of imagined transitions,
+            its ``keys`` and the ``rounds`` that rebuild it), if any.
         backend: the logger backend's name (for the warning of uncut logs).
 
     Examples:
@@ -164,7 +188,7 @@ class RunCheckpoint:
         dataset: TransitionDataset | None = None,
         dataset_needed: Callable[[Any], bool] | None = None,
         replay: tuple[TensorDictReplayBuffer, Sequence[NestedKey]] | None = None,
-        model_replay: tuple[TensorDictReplayBuffer, Sequence[NestedKey]] | None = None,
+        model_replay: ModelReplaySource | None = None,
         backend: str = "csv",
     ) -> None:
         self.run_dir = Path(run_dir)
@@ -185,11 +209,15 @@ class RunCheckpoint:
         self.names = ["progress", *components]
         if dataset is not None:
             self.names.append("dataset")
-        for name, entry in (("replay", replay), ("model_replay", model_replay)):
+        model = None if model_replay is None else (model_replay.replay, model_replay.keys)
+        for name, entry in (("replay", replay), ("model_replay", model)):
             if entry is not None:
                 buffer, keys = entry
                 checkpoint.register(name, buffer, adapter=ReplayCheckpointAdapter(keys=keys))
                 self.names.append(name)
+        if model_replay is not None:
+            checkpoint.register("model_rounds", model_replay.rounds, adapter=state)
+            self.names.append("model_rounds")
         self.checkpoint = checkpoint
         self.rotation = CheckpointRotation(self.run_dir / CHECKPOINTS, keep_last=keep_last)
         #: The resume-safe settings the last :meth:`resume` found changed (``{key: (old, new)}``).
@@ -229,8 +257,8 @@ class RunCheckpoint:
         allowed = self._check_compatible(latest, expected, config)
         check_resume_budget(self.progress["real_steps"], config, latest)
         self.allowed_changes = allowed
-        components = self.components()
         stored = set(self.checkpoint.manifest(latest)["components"])
+        components = [n for n in self.components() if n in stored or n not in OPTIONAL_COMPONENTS]
         if missing := [name for name in components if name not in stored]:
             raise ValueError(
                 f"{latest} holds no {', '.join(missing)}, which a run at its progress "

@@ -14,9 +14,9 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -30,11 +30,16 @@ from torchrl_mbmf.data.dataset_files import TERMINATED_KEY
 from torchrl_mbmf.data.episodes import TRAJ_KEY, episode_ends
 from torchrl_mbmf.runs.storage import DatasetCheckpointAdapter, verify_checkpoint
 
+if TYPE_CHECKING:
+    from torchrl_mbmf.runs.buffer_replay import RolloutsLike
+
 __all__ = [
     "DatasetReplay",
     "NotReplayableError",
     "compact_checkpoint",
     "expand_checkpoint",
+    "find_resets",
+    "replay_rows",
 ]
 
 _FORMAT = "torchrl_mbmf.dataset_replay/1"
@@ -126,6 +131,119 @@ def _sha256(array: np.ndarray) -> str:
     return hashlib.sha256(array.tobytes()).hexdigest()
 
 
+def find_resets(
+    data: TensorDictBase,
+    actions: torch.Tensor,
+    state_key: Any,
+    env: EnvBase,
+    seed: int,
+    stored: Callable[[TensorDictBase], TensorDictBase],
+) -> list[tuple[int, int]]:
+    """The seeded resets that replay ``actions`` into ``data`` (checked value by value).
+
+    Args:
+        data: the stored rows ``[N]`` in the order they were collected (``state_key`` and
+            ``("next", "done")`` among their entries).
+        actions: their actions ``[N, *action_shape]``.
+        state_key: the entry that holds the env's state.
+        env: a fresh copy of the env that collected them (``num_envs=1``).
+        seed: the run's seed (see :meth:`DatasetReplay.from_dataset`).
+        stored: maps a collector batch to the entries ``data`` stores.
+
+    Returns:
+        ``(row, seed)`` pairs: the env was seeded with ``seed`` and reset before ``row``.
+
+    Raises:
+        NotReplayableError: naming the first row and entry where the replay differs.
+
+    Examples:
+        >>> from torchrl_mbmf.data import collect_random_transitions
+        >>> from torchrl_mbmf.envs import make_env
+        >>> data = collect_random_transitions(make_env("Pendulum-v1", seed=3), 250, seed=3)
+        >>> rows = data.tensors()
+        >>> pick = lambda batch: batch.select("state", ("next", "state"))
+        >>> find_resets(rows, rows["action"], "state", make_env("Pendulum-v1"), 3, pick)
+        [(0, 3)]
+    """
+    n = int(actions.shape[0])
+    starts, forced = _episode_starts(data, state_key)
+    replayer = _Replayer(env, actions)
+    resets: list[tuple[int, int]] = []
+    try:
+        for a, b in zip(starts, [*starts[1:], n], strict=True):
+            batch = None
+            if a not in forced:  # after an episode end: does the env's own reset fit?
+                batch = replayer.steps(a, b)
+                if not torch.equal(batch.get(state_key)[0], data.get(state_key)[a]):
+                    batch = None
+            if batch is None:
+                replayer.reseed(seed + a)
+                resets.append((a, seed + a))
+                batch = replayer.steps(a, b)
+            got = stored(batch)
+            for key in got.keys(True, True):
+                if not torch.equal(got.get(key), data.get(key)[a:b]):
+                    rows = (got.get(key) != data.get(key)[a:b]).reshape(b - a, -1).any(-1)
+                    row = a + int(torch.nonzero(rows)[0])
+                    raise NotReplayableError(
+                        f"replaying the actions gives another {key!r} at row {row} (episode "
+                        f"rows {a}-{b}, seeded {resets[-1]}): the env or its seeding is "
+                        "not the one that collected the rows"
+                    )
+    finally:
+        replayer.close()
+    return resets
+
+
+def replay_rows(
+    env: EnvBase,
+    actions: torch.Tensor,
+    resets: Sequence[tuple[int, int]],
+    stored: Callable[[TensorDictBase], TensorDictBase],
+    *,
+    chunk: int = 20_000,
+) -> list[TensorDictBase]:
+    """Replays ``actions`` in ``env`` from the seeded ``resets``; the stored entries, in parts.
+
+    Args:
+        env: a fresh copy of the env that collected the rows (``num_envs=1``).
+        actions: the actions ``[N, *action_shape]``.
+        resets: ``(row, seed)`` pairs (see :func:`find_resets`).
+        stored: maps a collector batch to the entries kept.
+
+    Keyword Args:
+        chunk: most steps replayed in one collector batch. Defaults to ``20_000``.
+
+    Returns:
+        The kept entries of consecutive steps (empty without actions).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_mbmf.data import collect_random_transitions
+        >>> from torchrl_mbmf.envs import make_env
+        >>> data = collect_random_transitions(make_env("Pendulum-v1", seed=3), 250, seed=3)
+        >>> rows = data.tensors()
+        >>> parts = replay_rows(make_env("Pendulum-v1"), rows["action"], [(0, 3)],
+        ...                     lambda batch: batch.select("state"), chunk=100)
+        >>> len(parts), torch.equal(torch.cat(parts)["state"], rows["state"])
+        (3, True)
+    """
+    n = int(actions.shape[0])
+    parts: list[TensorDictBase] = []
+    if not n:
+        return parts
+    replayer = _Replayer(env, actions)
+    bounds = [row for row, _ in resets] + [n]
+    try:
+        for (a, seed), b in zip(resets, bounds[1:], strict=True):
+            replayer.reseed(seed)
+            for start in range(a, b, chunk):
+                parts.append(stored(replayer.steps(start, min(b, start + chunk))))
+    finally:
+        replayer.close()
+    return parts
+
+
 class DatasetReplay:
     """The record that rebuilds a run's :class:`~torchrl_mbmf.data.TransitionDataset` in its env.
 
@@ -212,32 +330,10 @@ class DatasetReplay:
         actions = data.get(dataset.action_key).clone()
         if dataset.action_key != "action":
             raise ValueError(f"replaying needs the action key 'action', got {dataset.action_key}")
-        starts, forced = _episode_starts(data, state_key)
-        replayer = _Replayer(env, actions)
-        resets: list[tuple[int, int]] = []
-        try:
-            for a, b in zip(starts, [*starts[1:], n], strict=True):
-                batch = None
-                if a not in forced:  # after an episode end: does the env's own reset fit?
-                    batch = replayer.steps(a, b)
-                    if not torch.equal(batch.get(state_key)[0], data.get(state_key)[a]):
-                        batch = None
-                if batch is None:
-                    replayer.reseed(seed + a)
-                    resets.append((a, seed + a))
-                    batch = replayer.steps(a, b)
-                got = _stored(batch, state_key, reward_key, dataset.stores_terminated)
-                for key in got.keys(True, True):
-                    if not torch.equal(got.get(key), data.get(key)[a:b]):
-                        rows = (got.get(key) != data.get(key)[a:b]).reshape(b - a, -1).any(-1)
-                        row = a + int(torch.nonzero(rows)[0])
-                        raise NotReplayableError(
-                            f"replaying the actions gives another {key!r} at row {row} (episode "
-                            f"rows {a}-{b}, seeded {resets[-1]}): the env or its seeding is "
-                            "not the one that collected the dataset"
-                        )
-        finally:
-            replayer.close()
+        pick = lambda batch: _stored(  # noqa: E731
+            batch, state_key, reward_key, dataset.stores_terminated
+        )
+        resets = find_resets(data, actions, state_key, env, seed, pick)
         ids = data.get(TRAJ_KEY)
         changes = torch.nonzero(ids[1:] != ids[:-1]).reshape(-1) + 1
         rows = [0, *changes.tolist()]
@@ -273,18 +369,8 @@ class DatasetReplay:
         keys = [tuple(k) if isinstance(k, list) else k for k in self.record["keys"]]
         state_key, reward_key = keys[0], keys[3][1]
         terminated = TERMINATED_KEY in keys
-        parts: list[TensorDictBase] = []
-        if n:
-            replayer = _Replayer(env, self.actions)
-            bounds = [row for row, _ in self.resets] + [n]
-            try:
-                for (a, seed), b in zip(self.resets, bounds[1:], strict=True):
-                    replayer.reseed(seed)
-                    for start in range(a, b, chunk):
-                        batch = replayer.steps(start, min(b, start + chunk))
-                        parts.append(_stored(batch, state_key, reward_key, terminated))
-            finally:
-                replayer.close()
+        pick = lambda batch: _stored(batch, state_key, reward_key, terminated)  # noqa: E731
+        parts = replay_rows(env, self.actions, self.resets, pick, chunk=chunk)
         stored = None
         if parts:
             stored = torch.cat(parts)
@@ -442,12 +528,19 @@ def _dataset_components(checkpoint: Path) -> list[Path]:
 
 
 def compact_checkpoint(
-    checkpoint: str | os.PathLike, dest: str | os.PathLike, env: EnvBase, *, seed: int
+    checkpoint: str | os.PathLike,
+    dest: str | os.PathLike,
+    env: EnvBase,
+    *,
+    seed: int,
+    rollouts: RolloutsLike | None = None,
 ) -> Path:
     """Copies a checkpoint to ``dest`` with each dataset replaced by its :class:`DatasetReplay`.
 
-    The copy keeps the checkpoint's integrity record, which still lists the dataset's files:
-    it verifies again only once :func:`expand_checkpoint` has rebuilt them bit for bit.
+    The replay buffers go too: SAC's by the actions that made its rows, ``sac_mbpo``'s model
+    replay by the record of its rollout rounds (:mod:`torchrl_mbmf.runs.buffer_replay`). The
+    copy keeps the checkpoint's integrity record, which still lists the removed files: it
+    verifies again only once :func:`expand_checkpoint` has rebuilt them bit for bit.
 
     Args:
         checkpoint: a verified checkpoint folder of a run.
@@ -456,13 +549,18 @@ def compact_checkpoint(
 
     Keyword Args:
         seed: the run's seed (see :meth:`DatasetReplay.from_dataset`).
+        rollouts: rollouts built like the run's (a ``BranchedRollouts``), needed when the
+            checkpoint holds a model replay (their parameters are overwritten). Defaults to
+            ``None``.
 
     Returns:
         ``dest``.
 
     Raises:
         FileExistsError: if ``dest`` exists.
-        NotReplayableError: if a dataset does not replay in ``env``.
+        NotReplayableError: if a dataset or replay buffer cannot be rebuilt exactly (a
+            wrapped SAC replay, rollout rounds not all recorded; nothing is written then).
+        ValueError: if the checkpoint holds a model replay and ``rollouts`` is ``None``.
 
     Examples:
         >>> import tempfile
@@ -484,6 +582,8 @@ def compact_checkpoint(
         >>> rebuilt
         True
     """
+    from torchrl_mbmf.runs.buffer_replay import compact_replay, replay_components
+
     checkpoint, dest = Path(checkpoint), Path(dest)
     if dest.exists():
         raise FileExistsError(f"{dest} exists; remove it first")
@@ -498,21 +598,35 @@ def compact_checkpoint(
     shutil.copytree(
         checkpoint, staging, ignore=lambda d, names: [n for n in names if Path(d) / n in skip]
     )
-    for folder, replay in replays:
-        replay.save(staging / folder.relative_to(checkpoint) / REPLAY_DIR)
+    try:
+        for folder, replay in replays:
+            replay.save(staging / folder.relative_to(checkpoint) / REPLAY_DIR)
+        for name in replay_components(checkpoint):
+            compact_replay(checkpoint, name, staging, env, seed=seed, rollouts=rollouts)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     os.replace(staging, dest)
     return dest
 
 
-def expand_checkpoint(checkpoint: str | os.PathLike, env: EnvBase) -> bool:
-    """Rebuilds in place the datasets of a checkpoint made by :func:`compact_checkpoint`.
+def expand_checkpoint(
+    checkpoint: str | os.PathLike, env: EnvBase, *, rollouts: RolloutsLike | None = None
+) -> bool:
+    """Rebuilds in place the datasets and replays of a :func:`compact_checkpoint` copy.
 
-    Each replay is replayed in ``env`` and written back as the dataset, the replay folder is
-    removed, and the checkpoint must then pass its integrity record: every file as saved.
+    Each dataset replay is replayed in ``env`` and written back as the dataset, then each
+    replay buffer is rebuilt (SAC's by replaying its actions, the model replay by re-running
+    its rollout rounds), the records are removed, and the checkpoint must then pass its
+    integrity record: every file as saved.
 
     Args:
         checkpoint: the compacted checkpoint folder.
         env: a fresh copy of the run's real env (``num_envs=1``).
+
+    Keyword Args:
+        rollouts: rollouts built like the run's, needed for a compacted model replay (their
+            parameters are overwritten). Defaults to ``None``.
 
     Returns:
         Whether anything was rebuilt (``False``: the checkpoint holds no replay).
@@ -520,7 +634,9 @@ def expand_checkpoint(checkpoint: str | os.PathLike, env: EnvBase) -> bool:
     Raises:
         CorruptDatasetError: if a replay does not rebuild its dataset bit for bit (nothing is
             changed then).
-        CheckpointIntegrityError: if the rebuilt checkpoint fails its integrity record.
+        CheckpointIntegrityError: if a rebuilt file differs from the one saved (the record
+            names it).
+        NotReplayableError: if a buffer's record does not fit its rows.
 
     Examples:
         >>> import tempfile
@@ -542,6 +658,8 @@ def expand_checkpoint(checkpoint: str | os.PathLike, env: EnvBase) -> bool:
         >>> rebuilt
         True
     """
+    from torchrl_mbmf.runs.buffer_replay import expand_replay, replay_components
+
     checkpoint = Path(checkpoint)
     folders = [f for f in _dataset_components(checkpoint) if (f / REPLAY_DIR).is_dir()]
     rebuilt = []
@@ -551,6 +669,11 @@ def expand_checkpoint(checkpoint: str | os.PathLike, env: EnvBase) -> bool:
     for folder, dataset in rebuilt:
         dataset.save(folder / _DATASET_DIR, overwrite=True)
         shutil.rmtree(folder / REPLAY_DIR)
-    if rebuilt:
+    # SAC's replay before the model replay: rounds draw start states from the dataset
+    expanded = [
+        expand_replay(checkpoint, name, env, rollouts=rollouts)
+        for name in sorted(replay_components(checkpoint), reverse=True)
+    ]
+    if rebuilt or any(expanded):
         verify_checkpoint(checkpoint)
-    return bool(rebuilt)
+    return bool(rebuilt) or any(expanded)

@@ -46,6 +46,7 @@ __all__ = [
     "SealedWriter",
     "TensorStateAdapter",
     "latest_intact_checkpoint",
+    "read_tensor_state",
     "verify_checkpoint",
     "write_integrity_record",
 ]
@@ -484,6 +485,42 @@ class _Decoder:
         raise self.fail(f"unknown entry kind {kind!r}")
 
 
+def read_tensor_state(path: str | os.PathLike) -> Any:
+    """The state a :class:`TensorStateAdapter` wrote to the folder ``path`` (no pickle).
+
+    Args:
+        path: the component's folder.
+
+    Raises:
+        ValueError: on a missing, unlisted or wrongly sized file or an unknown entry.
+
+    Examples:
+        >>> import tempfile, torch
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     TensorStateAdapter().save(torch.nn.Linear(3, 2), Path(d), args=(), kwargs={})
+        ...     state = read_tensor_state(d)
+        >>> sorted(state), state["weight"].shape
+        (['bias', 'weight'], torch.Size([2, 3]))
+    """
+    path = Path(path)
+    schema_file = path / TensorStateAdapter.schema_filename
+    if schema_file.is_symlink() or not schema_file.is_file():
+        raise ValueError(f"missing file {schema_file}")
+    try:
+        schema = json.loads(schema_file.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{schema_file} is not valid JSON: {err}") from err
+    decode = _Decoder(path, schema_file)
+    state = decode(schema)
+    for entry in path.iterdir():
+        if entry.name != schema_file.name and entry.name not in decode.used:
+            raise ValueError(
+                f"unexpected file {entry} (not a tensor listed in {schema_file}); "
+                "refusing to load it"
+            )
+    return state
+
+
 class TensorStateAdapter(CheckpointAdapter):
     """Checkpoints a ``state_dict``/``load_state_dict`` object without pickle.
 
@@ -542,21 +579,7 @@ class TensorStateAdapter(CheckpointAdapter):
             **kwargs: torchrl's load options (``map_location``, ``args``, ``kwargs``; the
                 tensors go back to the device they were saved from).
         """
-        schema_file = path / self.schema_filename
-        if schema_file.is_symlink() or not schema_file.is_file():
-            raise ValueError(f"missing file {schema_file}")
-        try:
-            schema = json.loads(schema_file.read_text(encoding="utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise ValueError(f"{schema_file} is not valid JSON: {err}") from err
-        decode = _Decoder(path, schema_file)
-        state = decode(schema)
-        for entry in path.iterdir():
-            if entry.name != self.schema_filename and entry.name not in decode.used:
-                raise ValueError(
-                    f"unexpected file {entry} (not a tensor listed in {schema_file}); "
-                    "refusing to load it"
-                )
+        state = read_tensor_state(path)
         component.load_state_dict(state, *kwargs.get("args", ()), **kwargs.get("kwargs", {}))
 
 

@@ -318,7 +318,7 @@ def make_run_checkpoint(trainer: Trainer) -> RunCheckpoint:
         dataset=None if world is None else world.dataset,
         dataset_needed=trainer.schedule.dataset_needed,
         replay=None if agent.replay is None else (agent.replay, agent.loss.in_keys),
-        model_replay=None if rollouts is None else (rollouts.replay, rollouts.keys),
+        model_replay=rollouts,
         backend=trainer.settings.logger_backend,
     )
 

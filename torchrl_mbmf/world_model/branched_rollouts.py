@@ -32,7 +32,13 @@ from torchrl_mbmf.envs.model_based import LearnedDynamicsEnv
 from torchrl_mbmf.envs.terminations import TerminationFn
 from torchrl_mbmf.modules.dynamics import DeltaDynamicsModel
 
-__all__ = ["BranchedRollouts", "RandomMemberEnv", "check_mbpo_config", "policy_as_planner"]
+__all__ = [
+    "BranchedRollouts",
+    "RandomMemberEnv",
+    "RolloutRounds",
+    "check_mbpo_config",
+    "policy_as_planner",
+]
 
 
 def check_mbpo_config(cfg: Mapping[str, Any]) -> None:
@@ -134,6 +140,96 @@ class RandomMemberEnv(EnsembleLearnedDynamicsEnv):
         td.set(self.reward_key, reward)
         td.set(self.disagreement_key, model.disagreement_of_scaled(mean).unsqueeze(-1))
         return td
+
+
+class RolloutRounds:
+    """What re-runs exactly each rollout round whose rows are still in the model replay.
+
+    Before a round (:meth:`begin`): the global torch random state, the torch thread count, the
+    number of real transitions, the model replay's writer state and the parameters of the actor,
+    the model and a learned termination head (each distinct set kept once); after it
+    (:meth:`end`): the rows it added. A round whose rows are all overwritten is dropped. A
+    checkpoint holds it as tensor state (``model_rounds``); recording draws no random number.
+    :mod:`torchrl_mbmf.runs.buffer_replay` rebuilds the model replay from it.
+
+    Examples:
+        >>> import torch
+        >>> rounds = RolloutRounds()
+        >>> net = torch.nn.Linear(2, 1)
+        >>> for cursor in (0, 40):
+        ...     rounds.begin(100, {"_cursor": cursor, "_write_count": cursor}, [net, net, None])
+        ...     rounds.end(40, capacity=50)
+        >>> [r["cursor"] for r in rounds.rounds], len(rounds.params)  # both partly kept
+        ([0, 40], 1)
+    """
+
+    def __init__(self) -> None:
+        self.rounds: list[dict[str, Any]] = []
+        self.params: list[dict[str, torch.Tensor]] = []
+
+    def _ref(self, module: object) -> int:
+        if not isinstance(module, torch.nn.Module):
+            return -1
+        state = {k: v.detach().clone() for k, v in module.state_dict().items()}
+        for i, known in enumerate(self.params):
+            if known.keys() == state.keys() and all(torch.equal(known[k], state[k]) for k in state):
+                return i
+        self.params.append(state)
+        return len(self.params) - 1
+
+    def begin(self, real: int, writer: Mapping[str, Any], modules: Sequence[object]) -> None:
+        """Records the state a round starts from.
+
+        Args:
+            real: the number of real transitions its start states are drawn from.
+            writer: the model replay's writer state (``_cursor``, ``_write_count``).
+            modules: the actor, the model and the termination function (a module or not).
+        """
+        actor, model, termination = (self._ref(m) for m in modules)
+        self.rounds.append(
+            {
+                "rng": torch.get_rng_state(),
+                "threads": torch.get_num_threads(),
+                "real": int(real),
+                "cursor": int(writer["_cursor"]),
+                "write_count": int(writer.get("_write_count", -1)),
+                "rows": -1,
+                "actor": actor,
+                "model": model,
+                "termination": termination,
+            }
+        )
+
+    def end(self, rows: int, capacity: int) -> None:
+        """Records the rows the round added; drops the rounds now wholly overwritten.
+
+        Args:
+            rows: the rows added.
+            capacity: the model replay's capacity.
+        """
+        last = self.rounds[-1]
+        last["rows"] = int(rows)
+        written = last["write_count"] + last["rows"]
+        self.rounds = [r for r in self.rounds if r["write_count"] + r["rows"] > written - capacity]
+        used = sorted({r[k] for r in self.rounds for k in ("actor", "model", "termination")} - {-1})
+        index = {old: new for new, old in enumerate(used)}
+        self.params = [self.params[i] for i in used]
+        for r in self.rounds:
+            for k in ("actor", "model", "termination"):
+                r[k] = index.get(r[k], -1)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The rounds and the parameter sets (tensors, ints and lists only)."""
+        return {"rounds": [dict(r) for r in self.rounds], "params": list(self.params)}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restores :meth:`state_dict`'s record.
+
+        Args:
+            state: the record.
+        """
+        self.rounds = [dict(r) for r in state["rounds"]]
+        self.params = [dict(p) for p in state["params"]]
 
 
 def policy_as_planner(
@@ -245,7 +341,9 @@ class BranchedRollouts:
         self.rollout_batch_size, self.horizon = int(rollout_batch_size), int(rollout_horizon)
         self.real_ratio = float(real_ratio)
         self.keys = list(keys)
-        self.actor = actor
+        self.actor, self.world_model, self.termination_fn = actor, world_model, termination_fn
+        #: What rebuilds the model replay exactly (see :class:`RolloutRounds`).
+        self.rounds = RolloutRounds()
         env_cls = RandomMemberEnv if world_model.ensemble_size > 1 else LearnedDynamicsEnv
         self.model_env = env_cls(world_model, env, termination_fn=termination_fn)
         self.replay = TensorDictReplayBuffer(
@@ -308,10 +406,11 @@ class BranchedRollouts:
         if len(real) == 0:
             raise ValueError("BranchedRollouts.generate: no real transitions to start from")
         states = real.tensors().get(real.state_key)
-        index = torch.randint(0, states.shape[0], (self.rollout_batch_size,))
-        starts = states[index].to(self.model_env.device).float()
-        kept = self.branches(starts)
+        modules = (self.actor, self.world_model, self.termination_fn)
+        self.rounds.begin(states.shape[0], self.replay.writer.state_dict(), modules)
+        kept = self.imagine_round(states)
         self.replay.extend(kept.to(self.replay.storage.device))
+        self.rounds.end(kept.numel(), self.replay.storage.max_size)
         terminated = kept.get(("next", "terminated")).float()
         return {
             "rollout/transitions": float(kept.numel()),
@@ -319,3 +418,13 @@ class BranchedRollouts:
             "rollout/terminated": float(terminated.sum()),
             "rollout/mean_reward": float(kept.get(("next", "reward")).mean()),
         }
+
+    def imagine_round(self, states: torch.Tensor) -> TensorDictBase:
+        """A round's kept transitions from start states drawn uniformly from ``states``.
+
+        Args:
+            states: the real states ``[n, state_dim]`` (drawn with replacement).
+        """
+        index = torch.randint(0, states.shape[0], (self.rollout_batch_size,))
+        starts = states[index].to(self.model_env.device).float()
+        return self.branches(starts)
