@@ -16,11 +16,12 @@ it with one torch thread in ``<root>/<name>``, and when it finishes copies its s
 ``--results/<name>``, with the root's parent folder cut from the paths they mention, so that the
 copy can be committed. Every start, finish and failure is appended to ``<root>/campaign.log``.
 ``--snapshot`` (at a session's end) copies unfinished runs the same way, with their latest
-checkpoint: as it is where it is small (PPO, and PPO-MPC once it fine-tunes), with its
-real-transition dataset replaced by the actions that made it where it holds one (MPC and
-PPO-MPC while they plan: :func:`~torchrl_mbmf.runs.dataset_replay.compact_checkpoint`, a
-few MB); a worker on a machine that lacks such a run's folder restores it from that copy
-(replaying the actions to rebuild the dataset bit for bit) and resumes it. A run whose
+checkpoint: as it is where it is small (PPO, and PPO-MPC once it fine-tunes), otherwise
+compacted (:func:`~torchrl_mbmf.runs.dataset_replay.compact_checkpoint`, a few MB): its
+real-transition dataset and SAC replay replaced by the actions that made them, ``sac_mbpo``'s
+model replay by the record of its rollout rounds; a worker on a machine that lacks such a
+run's folder restores it from that copy (replaying the actions and re-running the rounds to
+rebuild them bit for bit) and resumes it. A run whose
 committed copy holds a summary is done on any machine. ``--ledger`` appends the machine's events
 to the committed ``events.jsonl`` beside the queue and writes the run table from all of them.
 """
@@ -59,26 +60,31 @@ SMALL_FILES = (
 #: Largest checkpoint committed as it is with a partial run (PPO's are about 0.6 MB; a
 #: model-based one holds its dataset and a SAC one its replay buffer, tens of MB).
 SMALL_CHECKPOINT_BYTES = 5 * 2**20
-#: Largest checkpoint committed with its dataset replaced by the actions that made it (about
-#: 3.7 MB of networks and optimisers plus 24 bytes a real step: 14 MB at the end of the planning
-#: phase). A SAC checkpoint keeps its replay buffer and stays larger: it is not committed.
+#: Largest checkpoint committed compacted: its dataset and SAC replay replaced by the actions
+#: that made them, sac_mbpo's model replay by its rollout rounds' record (MPC: about 3.7 MB of
+#: networks and optimisers plus 24 bytes a real step, 14 MB at the end of the planning phase;
+#: HalfCheetah SAC, measured: 5.2 MB at 5e4 real steps, 7.1 MB at 1e5).
 COMPACT_CHECKPOINT_BYTES = 20 * 2**20
+#: Methods whose checkpoints :func:`snapshot` commits compacted from the first one on (their
+#: dataset and SAC replay as the actions that made them, sac_mbpo's model replay as its rollout
+#: rounds' record; HalfCheetah SAC 7.1 MB at 1e5 real steps, sac_mbpo about 15.5 MB): a fresh
+#: machine continues them from their last checkpoint, so nothing but the steps since it is at
+#: risk. SAC-MPC is not listed: its compact size is unmeasured.
+COMPACTED = ("mpc", "ppo_mpc", "sac", "sac_mbpo")
 #: Minutes (one core of the busy 2-core machine; the campaign's runs so far, see LEDGER.md) a
 #: run spends before its checkpoints can be committed, so that a fresh machine can continue
-#: it: the whole run for SB3 (no resume), SAC and SAC-MPC (replay buffer), none for PPO, nor
-#: for MPC and PPO-MPC (their planning checkpoints are committed compacted). SB3 SAC:
-#: 17.2 ms per gradient step alone on a core (a 16,000-step run, 11,000 gradient steps, on
-#: 2026-12-02), so about 57 min for 2e5 steps, with a margin. sac_mbpo (its hybrid_mbpo
-#: preset): about 2.8-3.0 h projected for 1e5 steps (results/hybrid/mbpo_timing.md).
-AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac": 70, "sac_mpc": 100, "sac_mbpo": 190}
+#: it: the whole run for SB3 (no resume) and SAC-MPC (replay buffer), none for PPO, nor for
+#: the :data:`COMPACTED` methods. SB3 SAC: 17.2 ms per gradient step alone on a core (a
+#: 16,000-step run, 11,000 gradient steps, on 2026-12-02), so about 57 min for 2e5 steps, with
+#: a margin. (A whole sac run: about 70 min for 2e5; sac_mbpo with its hybrid_mbpo preset:
+#: about 2.8-3.0 h projected for 1e5 steps, results/hybrid/mbpo_timing.md.)
+AT_RISK_MIN = {"sb3_ppo": 35, "sb3_sac": 70, "ppo": 0, "sac_mpc": 100}
 #: The budgets (real steps) those minutes are for: the thesis' (1e6 for PPO, 2e5 for SAC); a
 #: run of another budget is expected to take proportionally as long.
 AT_RISK_STEPS = {
     "sb3_ppo": 1_000_000,
     "sb3_sac": 200_000,
-    "sac": 200_000,
     "sac_mpc": 200_000,
-    "sac_mbpo": 100_000,
 }
 #: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
 #: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
@@ -206,21 +212,21 @@ def _seconds_left(stop_at: dt.datetime | None) -> float:
 def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
     """Expected wall time until a run's checkpoints can be committed (a fresh machine resumes).
 
-    For SAC, SAC-MPC and SB3 the rest of the run (SB3 runs restart, so ``done_steps`` does not
-    count); for PPO nothing, nor for MPC and PPO-MPC, whose planning checkpoints
-    :func:`snapshot` commits with the dataset replaced by its replay (the steps since the last
-    checkpoint, at most ``checkpoint.every_steps``, are redone).
+    For SAC-MPC and SB3 the rest of the run (SB3 runs restart, so ``done_steps`` does not
+    count); for PPO nothing, nor for the :data:`COMPACTED` methods (MPC, PPO-MPC, SAC,
+    ``sac_mbpo``), whose checkpoints :func:`snapshot` commits compacted (the steps since the
+    last checkpoint, at most ``checkpoint.every_steps``, are redone).
 
     Args:
         run: the queued run.
         done_steps: the real steps it has already run on this machine.
 
     Examples:
-        >>> run = QueuedRun("r", "train", ("method=sac", "total_steps=200000"))
+        >>> run = QueuedRun("r", "train", ("method=sac_mpc", "total_steps=200000"))
         >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=150_000) / 60
-        (70.0, 17.5)
-        >>> at_risk_seconds(QueuedRun("r", "train", ("method=sac", "total_steps=100000"))) / 60
-        35.0
+        (100.0, 25.0)
+        >>> at_risk_seconds(QueuedRun("r", "train", ("method=sac_mbpo", "total_steps=100000")))
+        0.0
     """
     overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
     method = str(overrides.get("method", "ppo_mpc"))
@@ -228,7 +234,7 @@ def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
     scale = budget(run) / AT_RISK_STEPS[key] if key in AT_RISK_STEPS else 1.0
     if not run.resumable:
         return 60.0 * AT_RISK_MIN.get(key, 120) * scale
-    if method in ("mpc", "ppo_mpc"):
+    if method in COMPACTED:
         return 0.0
     minutes, risky_steps = AT_RISK_MIN.get(method, 180) * scale, budget(run)
     left = max(0.0, 1.0 - done_steps / risky_steps) if risky_steps else 0.0

@@ -118,6 +118,9 @@ def test_compacted_replays_rebuild_bit_for_bit_and_resume_exactly(tmp_path, monk
     for name in names:
         folder = replay_components(compacted)[name]
         assert sorted(p.name for p in folder.iterdir()) == [REBUILD_DIR, "replay.json"]
+    # sac_mbpo's SAC replay shares the dataset's actions (stored once)
+    actions = replay_components(compacted)["replay"] / REBUILD_DIR / "actions"
+    assert actions.is_dir() == (method == "sac")
     with pytest.raises(CheckpointIntegrityError, match=r"integrity\.json"):
         verify_checkpoint(compacted)  # not resumable until rebuilt
     env, _ = campaign._run_env(fresh)

@@ -98,16 +98,17 @@ def test_failed_runs_and_unresumable_runs_without_time_are_passed_over(tmp_path)
 def test_a_run_starts_only_where_what_a_fresh_machine_would_lose_fits_in_the_session(tmp_path):
     queue = _queue(
         tmp_path,
-        "sac train method=sac total_steps=200000 seed=0\n"
+        "sac train method=sac_mpc total_steps=200000 seed=0\n"
         "sb3 sb3_reference method=sac seed=0\n"
         "tune train method=ppo_mpc seed=0\n"
         "plan train method=mpc planner.horizon=25 total_steps=419600 seed=0\n"
         "ppo train method=ppo seed=0\n",
     )
     minutes = [campaign.at_risk_seconds(run) / 60 for run in queue]
-    # SAC keeps a replay buffer, SB3 cannot resume; MPC and PPO-MPC planning checkpoints are
-    # committed compacted (their dataset replaced by its replay), PPO's as they are
-    assert minutes == [70, 70, 0, 0, 0]
+    # SAC-MPC's compact size is unmeasured, SB3 cannot resume; MPC and PPO-MPC planning
+    # checkpoints are committed compacted (their dataset replaced by its replay), PPO's as
+    # they are
+    assert minutes == [100, 70, 0, 0, 0]
     root = tmp_path / "runs"
     hours = lambda h: dt.datetime.now(dt.UTC) + dt.timedelta(hours=h)  # noqa: E731
     assert [campaign.claim_next(root, queue, hours(3)).name for _ in range(3)] == [
@@ -119,11 +120,11 @@ def test_a_run_starts_only_where_what_a_fresh_machine_would_lose_fits_in_the_ses
         (root / ".claims" / name).unlink()
     assert campaign.claim_next(root, queue, hours(0.5)).name == "tune"  # neither SAC fits
     (root / ".claims" / "tune").unlink()
-    # the SAC run, interrupted on this machine at 150,000 steps: 17.5 minutes of it left
+    # the SAC-MPC run, interrupted on this machine at 150,000 steps: 25 minutes of it left
     steps = root / "sac" / "logs" / "scalars" / "train"
     steps.mkdir(parents=True)
     (steps / "episode_return.csv").write_text("150000,1.0\n")
-    assert campaign.at_risk_seconds(queue[0], 150_000) / 60 == pytest.approx(17.5)
+    assert campaign.at_risk_seconds(queue[0], 150_000) / 60 == pytest.approx(25)
     assert campaign.claim_next(root, queue, hours(0.5)).name == "sac"  # fits, and kept here
     (root / ".claims" / "sac").unlink()
     # nothing fits: a resumable run continues only if the next session keeps this machine

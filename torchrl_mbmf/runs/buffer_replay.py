@@ -143,7 +143,20 @@ def _write_rows(buffer: TensorDictReplayBuffer, folder: Path) -> None:
 
 
 # ------------------------------------------------------------ real transitions
-def _compact_real(folder: Path, target: Path, env: EnvBase, seed: int) -> dict[str, Any]:
+def _dataset_actions(checkpoint: Path, rows: int) -> torch.Tensor | None:
+    """The first ``rows`` actions of the checkpoint's dataset, if it holds that many."""
+    manifest = json.loads((checkpoint / "manifest.json").read_text())
+    if "dataset" not in manifest["components"]:
+        return None
+    dataset = TransitionDataset.load(_component(checkpoint, "dataset") / "transitions")
+    if len(dataset) < rows or dataset.action_key != "action":
+        return None
+    return dataset.tensors().get("action")[:rows]
+
+
+def _compact_real(
+    checkpoint: Path, folder: Path, target: Path, env: EnvBase, seed: int
+) -> dict[str, Any]:
     filled, keys, writer = _buffer_state(folder)
     if writer.get("_write_count", filled) != filled:
         raise NotReplayableError(
@@ -156,17 +169,25 @@ def _compact_real(folder: Path, target: Path, env: EnvBase, seed: int) -> dict[s
     rows = load_tensor_folder(folder / _DATA, keys=[_tuple(k) for k in keys])
     actions = rows.get("action").clone()
     resets = find_resets(rows, actions, _STATE_KEY, env, seed, _pick(keys))
+    shared = _dataset_actions(checkpoint, filled)
+    if shared is not None and torch.equal(shared, actions):  # sac_mpc, sac_mbpo: stored once
+        return {"kind": "real", "actions": "dataset", "resets": [list(r) for r in resets]}
     record = {"num_transitions": filled, "keys": [list(_tuple(k)) for k in keys]}
     DatasetReplay(actions, resets, [(0, 0)], record).save(target / REBUILD_DIR / "actions")
     return {"kind": "real"}
 
 
-def _expand_real(folder: Path, env: EnvBase) -> None:
+def _expand_real(checkpoint: Path, folder: Path, env: EnvBase, meta: Mapping[str, Any]) -> None:
     filled, keys, _ = _buffer_state(folder)
-    replay = DatasetReplay.load(folder / REBUILD_DIR / "actions")
-    if len(replay) != filled:
-        raise NotReplayableError(f"{folder}: {len(replay)} actions for {filled} rows")
-    rows = torch.cat(replay_rows(env, replay.actions, replay.resets, _pick(keys)))
+    if meta.get("actions") == "dataset":  # the dataset's first rows (rebuilt first)
+        actions = _dataset_actions(checkpoint, filled)
+        resets = [(int(row), int(seed)) for row, seed in meta["resets"]]
+    else:
+        replay = DatasetReplay.load(folder / REBUILD_DIR / "actions")
+        actions, resets = replay.actions, replay.resets
+    if actions is None or len(actions) != filled:
+        raise NotReplayableError(f"{folder}: no actions for its {filled} rows")
+    rows = torch.cat(replay_rows(env, actions, resets, _pick(keys)))
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(filled + 1))
     buffer.extend(_ordered(rows, keys))
     _write_rows(buffer, folder)
@@ -320,7 +341,7 @@ def compact_replay(
             raise ValueError(f"{checkpoint}: compacting the model replay needs rollouts=")
         meta = _check_model(checkpoint, folder, rollouts)
     else:
-        meta = _compact_real(folder, target, env, seed)
+        meta = _compact_real(checkpoint, folder, target, env, seed)
     shutil.rmtree(target / _DATA)
     (target / REBUILD_DIR).mkdir(exist_ok=True)
     (target / REBUILD_DIR / _RECORD).write_text(json.dumps({"format": _FORMAT, **meta}))
@@ -371,6 +392,6 @@ def expand_replay(
         buffer = _rebuild_model(checkpoint, folder, rollouts, _real_states(checkpoint))
         _write_rows(buffer, folder)
     else:
-        _expand_real(folder, env)
+        _expand_real(checkpoint, folder, env, meta)
     shutil.rmtree(folder / REBUILD_DIR)
     return True
