@@ -124,6 +124,14 @@ def test_compacted_replays_rebuild_bit_for_bit_and_resume_exactly(tmp_path, monk
     with pytest.raises(CheckpointIntegrityError, match=r"integrity\.json"):
         verify_checkpoint(compacted)  # not resumable until rebuilt
     env, _ = campaign._run_env(fresh)
+    if method == "sac_mbpo":  # a changed round record is refused before anything is rebuilt
+        tampered = tmp_path / "tampered"
+        shutil.copytree(compacted, tampered)
+        rng = next((tampered / "components").glob("*-model_rounds")) / "t00000.bin"
+        rng.write_bytes(bytes([rng.read_bytes()[0] ^ 1]) + rng.read_bytes()[1:])
+        with pytest.raises(CheckpointIntegrityError, match=r"model_rounds.*SHA-256"):
+            expand_checkpoint(tampered, env, rollouts=campaign.run_rollouts(fresh))
+        assert not (replay_components(tampered)["model_replay"] / "data").exists()
     with monkeypatch.context() as patch:
         _no_unpickling(patch)
         assert expand_checkpoint(compacted, env, rollouts=campaign.run_rollouts(fresh))

@@ -634,8 +634,8 @@ def expand_checkpoint(
     Raises:
         CorruptDatasetError: if a replay does not rebuild its dataset bit for bit (nothing is
             changed then).
-        CheckpointIntegrityError: if a rebuilt file differs from the one saved (the record
-            names it).
+        CheckpointIntegrityError: if a file kept in the compact copy or a rebuilt one differs
+            from the one saved (naming it).
         NotReplayableError: if a buffer's record does not fit its rows.
 
     Examples:
@@ -658,9 +658,11 @@ def expand_checkpoint(
         >>> rebuilt
         True
     """
-    from torchrl_mbmf.runs.buffer_replay import expand_replay, replay_components
+    from torchrl_mbmf.runs.buffer_replay import REBUILD_DIR, expand_replay, replay_components
 
     checkpoint = Path(checkpoint)
+    # every file kept as saved (a changed round record or network is refused before any work)
+    verify_checkpoint(checkpoint, compacted=(REPLAY_DIR, REBUILD_DIR))
     folders = [f for f in _dataset_components(checkpoint) if (f / REPLAY_DIR).is_dir()]
     rebuilt = []
     for folder in folders:
