@@ -49,7 +49,8 @@ SAC = [
     "progress=false",
 ]
 #: a rollout round every batch from 400 steps on; the model replay (150 rows, up to 80 a
-#: round) has wrapped around by the checkpoint at 600 steps
+#: round) has wrapped around by the checkpoint at 600 steps; the rounds at 400 and 500 use the
+#: model fitted at 300, the one at 600 the model refitted at 500, which the checkpoint holds
 MBPO = [
     *(o for o in SAC if not o.startswith("method=") and not o.startswith("total_steps=")),
     "method=sac_mbpo",
@@ -59,7 +60,7 @@ MBPO = [
     "world_model.hidden_sizes=[32,32]",
     "world_model.ensemble_size=2",
     "mbpo.rollout_every=100",
-    "mbpo.refit_every=300",
+    "mbpo.refit_every=200",
     "mbpo.rollout_batch_size=40",
     "mbpo.rollout_horizon=2",
     "mbpo.model_replay_size=150",
@@ -118,16 +119,21 @@ def test_compacted_replays_rebuild_bit_for_bit_and_resume_exactly(tmp_path, monk
     for name in names:
         folder = replay_components(compacted)[name]
         assert sorted(p.name for p in folder.iterdir()) == [REBUILD_DIR, "replay.json"]
-    # sac_mbpo's SAC replay shares the dataset's actions (stored once)
+    # sac_mbpo's SAC replay shares the dataset's actions, its rounds the current model's
+    # parameters (stored once)
     actions = replay_components(compacted)["replay"] / REBUILD_DIR / "actions"
     assert actions.is_dir() == (method == "sac")
+    rounds = list((compacted / "components").glob("*-model_rounds"))
+    assert [sorted(p.name for p in r.iterdir()) for r in rounds] == (
+        [] if method == "sac" else [[REBUILD_DIR]]
+    )
     with pytest.raises(CheckpointIntegrityError, match=r"integrity\.json"):
         verify_checkpoint(compacted)  # not resumable until rebuilt
     env, _ = campaign._run_env(fresh)
     if method == "sac_mbpo":  # a changed round record is refused before anything is rebuilt
         tampered = tmp_path / "tampered"
         shutil.copytree(compacted, tampered)
-        rng = next((tampered / "components").glob("*-model_rounds")) / "t00000.bin"
+        rng = next((tampered / "components").glob("*-model_rounds")) / REBUILD_DIR / "t00000.bin"
         rng.write_bytes(bytes([rng.read_bytes()[0] ^ 1]) + rng.read_bytes()[1:])
         with pytest.raises(CheckpointIntegrityError, match=r"model_rounds.*SHA-256"):
             expand_checkpoint(tampered, env, rollouts=campaign.run_rollouts(fresh))

@@ -6,7 +6,8 @@ them: compacted, its rows are the actions that made them and the seeded resets (
 the env. ``sac_mbpo``'s model replay (``model_replay``) holds the imagined transitions of its
 last rollout rounds: compacted, it is the record of those rounds the checkpoint always holds
 (``model_rounds``, :class:`~torchrl_mbmf.world_model.branched_rollouts.RolloutRounds`),
-rebuilt by re-running each round into the buffer at its original position. Either is accepted
+rebuilt by re-running each round into the buffer at its original position (the record leaves
+out a parameter set equal to the checkpoint's world model). Either is accepted
 only once the rebuilt files pass the checkpoint's integrity record bit for bit.
 :func:`~torchrl_mbmf.runs.dataset_replay.compact_checkpoint` and
 :func:`~torchrl_mbmf.runs.dataset_replay.expand_checkpoint` call these. Why this works:
@@ -37,7 +38,12 @@ from torchrl_mbmf.runs.dataset_replay import (
     find_resets,
     replay_rows,
 )
-from torchrl_mbmf.runs.storage import ReplayCheckpointAdapter, read_tensor_state
+from torchrl_mbmf.runs.storage import (
+    ReplayCheckpointAdapter,
+    TensorStateAdapter,
+    read_tensor_state,
+    verify_checkpoint,
+)
 
 __all__ = [
     "REBUILD_DIR",
@@ -268,6 +274,69 @@ def _check_model(checkpoint: Path, folder: Path, rollouts: RolloutsLike) -> dict
     return {"kind": "model"}
 
 
+# ------------------------------------------------------------ the rounds' record
+#: The component whose parameters a round's model parameters may equal (stored once).
+_CURRENT = "world_model"
+
+
+class _State:
+    """A state for :class:`TensorStateAdapter` to write."""
+
+    def __init__(self, state: Mapping[str, Any]) -> None:
+        self.state = state
+
+    def state_dict(self) -> Mapping[str, Any]:
+        return self.state
+
+
+def _same(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """Whether two parameter sets are equal bit for bit."""
+    return list(a) == list(b) and all(
+        a[k].dtype == b[k].dtype and a[k].cpu().numpy().tobytes() == b[k].cpu().numpy().tobytes()
+        for k in a
+    )
+
+
+def _full_rounds(checkpoint: Path, compact: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``model_rounds`` state from its compact form (shared sets from the world model)."""
+    current = dict(read_tensor_state(_component(checkpoint, _CURRENT)).items())
+    shared = set(compact["shared"])
+    params = [current if i in shared else p for i, p in enumerate(compact["params"])]
+    return {"rounds": compact["rounds"], "params": params}
+
+
+def _compact_rounds(checkpoint: Path, staging: Path) -> None:
+    """Writes ``model_rounds`` without the parameter sets equal to the world model's."""
+    folder = _component(checkpoint, "model_rounds")
+    state = read_tensor_state(folder)
+    current = read_tensor_state(_component(checkpoint, _CURRENT))
+    shared = [i for i, p in enumerate(state["params"]) if _same(p, current)]
+    if not shared:
+        return
+    params = [{} if i in shared else p for i, p in enumerate(state["params"])]
+    compact = {"rounds": state["rounds"], "params": params, "shared": shared}
+    target = staging / folder.relative_to(checkpoint)
+    with tempfile.TemporaryDirectory() as scratch:  # the expansion must give the same files
+        TensorStateAdapter().save(
+            _State(_full_rounds(checkpoint, compact)), Path(scratch), args=(), kwargs={}
+        )
+        for file in folder.iterdir():
+            if (Path(scratch) / file.name).read_bytes() != file.read_bytes():
+                return  # kept whole
+    shutil.rmtree(target)
+    TensorStateAdapter().save(_State(compact), target / REBUILD_DIR, args=(), kwargs={})
+
+
+def _expand_rounds(checkpoint: Path) -> None:
+    """Writes ``model_rounds`` back whole if :func:`_compact_rounds` compacted it."""
+    folder = _component(checkpoint, "model_rounds")
+    if not (folder / REBUILD_DIR).is_dir():
+        return
+    state = _full_rounds(checkpoint, read_tensor_state(folder / REBUILD_DIR))
+    TensorStateAdapter().save(_State(state), folder, args=(), kwargs={})
+    shutil.rmtree(folder / REBUILD_DIR)
+
+
 # ------------------------------------------------------------ both
 def compact_replay(
     checkpoint: Path,
@@ -340,6 +409,7 @@ def compact_replay(
         if rollouts is None:
             raise ValueError(f"{checkpoint}: compacting the model replay needs rollouts=")
         meta = _check_model(checkpoint, folder, rollouts)
+        _compact_rounds(checkpoint, staging)
     else:
         meta = _compact_real(checkpoint, folder, target, env, seed)
     shutil.rmtree(target / _DATA)
@@ -389,6 +459,8 @@ def expand_replay(
     if meta["kind"] == "model":
         if rollouts is None:
             raise ValueError(f"{checkpoint}: rebuilding the model replay needs rollouts=")
+        _expand_rounds(checkpoint)  # then checked: a changed record is refused before re-running
+        verify_checkpoint(checkpoint, compacted=(REBUILD_DIR, "replay"))
         buffer = _rebuild_model(checkpoint, folder, rollouts, _real_states(checkpoint))
         _write_rows(buffer, folder)
     else:
