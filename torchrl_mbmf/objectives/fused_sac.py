@@ -256,9 +256,10 @@ class FusedSACUpdate:
             if self._actor is None:
                 next_action, next_log_prob = self._sample(next_obs)
             else:
+                # the actor's trunk on both batches at once (its rows are independent)
                 a_params, a_lin, a_acts, head = self._actor
-                next_out = _mlp_forward(a_lin, a_acts, next_obs)[0][0]
-                next_action, next_log_prob = self._tanh_normal(*head(next_out))
+                a_out, a_outs, a_pres = _mlp_forward(a_lin, a_acts, torch.cat([obs, next_obs]))
+                next_action, next_log_prob = self._tanh_normal(*head(a_out[0, batch:]))
             next_x = torch.cat([next_obs, next_action], -1)
             next_q = _mlp_forward(self._q_target_linear, acts, next_x)[0].squeeze(-1)
             next_value = (next_q - alpha * next_log_prob).min(0).values
@@ -266,9 +267,7 @@ class FusedSACUpdate:
         if self._actor is None:
             new_action, log_prob = self._sample(obs)
         else:
-            with torch.no_grad():
-                a_out, a_outs, a_pres = _mlp_forward(a_lin, a_acts, obs)
-            policy_out = a_out[0].detach().requires_grad_()
+            policy_out = a_out[0, :batch].detach().requires_grad_()
             new_action, log_prob = self._tanh_normal(*head(policy_out))
         with torch.no_grad():
             x = torch.cat(
@@ -284,8 +283,8 @@ class FusedSACUpdate:
             grad = torch.zeros_like(q)
             grad[:, :batch] = self._distance_grad(diff).mul_(scale)
             grad[:, batch:].scatter_(0, argmin.unsqueeze(0), -scale)
-            q_grads, action_grad = _mlp_backward(
-                self._q_linear, acts, x, outs, pres, grad.unsqueeze(-1), batch, obs.shape[-1]
+            q_grads, action_grad = _q_backward(
+                self._q_linear, acts, x, outs, pres, grad.unsqueeze(-1), argmin, obs.shape[-1]
             )
             log_prob_d = log_prob.detach()
             loss_actor = (alpha * log_prob_d - q_pi).mean()
@@ -299,6 +298,8 @@ class FusedSACUpdate:
         )
         if self._actor is not None:
             with torch.no_grad():
+                a_outs = [t[:, :batch] for t in a_outs]
+                a_pres = [None if t is None else t[:, :batch] for t in a_pres]
                 a_grads, _ = _mlp_backward(
                     a_lin, a_acts, obs, a_outs, a_pres, policy_out.grad.unsqueeze(0), batch
                 )
@@ -321,8 +322,7 @@ class FusedSACUpdate:
             self.target_updater.step()
             return
         with torch.no_grad():
-            for target, source in zip(self._q_target_linear, self._q_linear, strict=True):
-                target.lerp_(source, self._lerp_weight)
+            torch._foreach_lerp_(self._q_target_linear, self._q_linear, self._lerp_weight)
 
     @property
     def batch_keys(self) -> tuple[Any, ...]:
@@ -422,16 +422,70 @@ def _mlp_backward(
             return grads, torch.bmm(part, d[:, rows:].transpose(1, 2)).sum(0).t()
         grads[2 * i] = torch.bmm(top.transpose(1, 2), outs[i - 1][:, :rows])
         d = d * weight if d.shape[-1] == 1 else torch.bmm(d, weight)
-        act = acts[i - 1]
-        if act == "relu":
-            d = torch.ops.aten.threshold_backward(d, outs[i - 1], 0)
-        elif act == "tanh":
-            d = torch.ops.aten.tanh_backward(d, outs[i - 1])
-        else:
-            with torch.enable_grad():
-                z = pres[i - 1].detach().requires_grad_()
-                (d,) = torch.autograd.grad(act(z), z, d)
+        d = _activation_backward(acts[i - 1], d, outs[i - 1], pres[i - 1])
     raise AssertionError("unreachable")
+
+
+def _activation_backward(
+    act: Any, d: Tensor, out: Tensor, pre: Tensor | None, *index: Any
+) -> Tensor:
+    """``d`` through an activation, from its output ``out`` (or its input ``pre[index]``)."""
+    if act == "relu":
+        return torch.ops.aten.threshold_backward(d, out, 0)
+    if act == "tanh":
+        return torch.ops.aten.tanh_backward(d, out)
+    with torch.enable_grad():
+        z = pre[index].detach().requires_grad_()
+        (d,) = torch.autograd.grad(act(z), z, d)
+    return d
+
+
+#: Fewest rows a member's share of the actor rows may have for :func:`_q_backward` to run it
+#: alone: below this, MKL's single-thread GEMM takes another kernel path for the narrow side and
+#: rounds differently from the whole-batch product (measured: 3 rows, 11 columns).
+_MIN_MEMBER_ROWS = 16
+
+
+def _q_backward(
+    linear: list[Tensor],
+    acts: list[Any],
+    x: Tensor,
+    outs: list[Tensor],
+    pres: list[Tensor | None],
+    d: Tensor,
+    argmin: Tensor,
+    skip: int,
+) -> tuple[list[Tensor], Tensor | None]:
+    """:func:`_mlp_backward` of the Q-ensemble's critic rows and min-Q actor rows.
+
+    The first ``rows = len(argmin)`` rows of ``d`` ``[n, 2 * rows, 1]`` are the critic loss'
+    gradients (every member), the last ``rows`` the actor loss' (non-zero in the member
+    ``argmin`` of each row only). The critic rows run through every member; each actor row
+    runs through its ``argmin`` member alone (its other members' rows are exact zeros), which
+    halves that part's products. Same numbers as :func:`_mlp_backward` on all ``2 * rows``
+    rows (a row of a product does not depend on the others); where a member would get fewer
+    than :data:`_MIN_MEMBER_ROWS` rows, that whole-batch backward runs instead.
+    """
+    rows = argmin.shape[0]
+    n = linear[0].shape[0]
+    members = [(argmin == k).nonzero().squeeze(1) for k in range(n)]
+    if any(0 < len(m) < _MIN_MEMBER_ROWS for m in members):
+        return _mlp_backward(linear, acts, x, outs, pres, d, rows, skip)
+    critic = [t[:, :rows] for t in outs], [None if t is None else t[:, :rows] for t in pres]
+    grads, _ = _mlp_backward(linear, acts, x[:rows], *critic, d[:, :rows], rows)
+    # the first layer's input gradient as the whole-batch product, on exact zeros elsewhere
+    first = outs[0].new_zeros(n, rows, outs[0].shape[-1])
+    for k, index in enumerate(members):
+        if len(index):
+            at = index + rows
+            g = d[k, at]
+            for i in range(len(acts), 0, -1):
+                weight = linear[2 * i][k]
+                g = g * weight if g.shape[-1] == 1 else torch.mm(g, weight)
+                g = _activation_backward(acts[i - 1], g, outs[i - 1][k, at], pres[i - 1], k, at)
+            first[k, index] = g
+    part = linear[0][:, :, skip:].transpose(1, 2)
+    return grads, torch.bmm(part, first.transpose(1, 2)).sum(0).t()
 
 
 def _split_policy(
