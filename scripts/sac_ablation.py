@@ -7,7 +7,9 @@ the default SAC and SB3's SAC with the same settings) through :mod:`torchrl_mbmf
 reports, per variant and seed, the mean training return of the last 10 episodes and the latest
 deterministic evaluation at or before each step (the thesis runs evaluated one episode every
 20,480 steps, the ablation ten every 10,000: their evaluation columns are not comparable, the
-training column is). Writes ``results/hybrid/sac_ablation.json``.
+training column is). Then the variants run under one protocol to 1e5 (ours and SB3's, five seeds
+each, ten evaluation episodes every 10,000 steps) side by side: the IQM over seeds of each
+measure with its 95% bootstrap interval. Writes ``results/hybrid/sac_ablation.json``.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_mbmf.analysis.runs import Run, load_runs
+from torchrl_mbmf.analysis.stats import bootstrap_ci, iqm
 
 ROOT = Path(__file__).resolve().parents[1]
 #: ``<label>: run-name pattern`` (the seed is the name's last part).
@@ -84,8 +87,28 @@ def main() -> None:
             ev = ", ".join("n/a" if v is None else f"{v:,.0f}" for v in row["eval"])
             mean = f"{np.mean(train):,.0f}" if train else "n/a"
             print(f"| {label} | {row['seeds']} | {fmt} | {mean} | {ev} |")
+    same_protocol = [label for label in table if "runs to 1e5" in label]
+    print(
+        "\n| variant (one protocol) | real steps | seeds | last-10 training return: IQM "
+        "[95% CI] | evaluation: IQM [95% CI] |"
+    )
+    print("|---|---|---|---|---|")
+    for label in same_protocol:
+        for step in args.steps:
+            row = table[label][str(step)]
+            cells = []
+            for measure in ("train_last10", "eval"):
+                values = [v for v in row[measure] if v is not None]
+                if not values:
+                    cells.append("n/a")
+                    continue
+                ci = bootstrap_ci(values)
+                row[f"{measure}_iqm"] = float(iqm(values))
+                row[f"{measure}_ci95"] = [float(ci.low), float(ci.high)]
+                cells.append(f"{float(iqm(values)):,.0f} [{ci.low:,.0f}, {ci.high:,.0f}]")
+            print(f"| {label} | {step:,} | {len(row['seeds'])} | {cells[0]} | {cells[1]} |")
     args.out.write_text(json.dumps(table, indent=1) + "\n")
-    print(f"\nwrote {args.out.relative_to(ROOT)}")
+    print(f"\nwrote {args.out}")
 
 
 if __name__ == "__main__":
