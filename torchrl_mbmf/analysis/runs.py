@@ -146,6 +146,26 @@ class Run:
         return float(total)
 
     @property
+    def resumed_from(self) -> int:
+        """The real step the run's last process resumed from (0 for a run never resumed).
+
+        ``summary.json``'s ``seconds`` and ``time_breakdown`` cover that last process only.
+
+        Examples:
+            >>> import tempfile, pathlib
+            >>> from torchrl_mbmf.analysis.runs import Run
+            >>> d = pathlib.Path(tempfile.mkdtemp())
+            >>> Run(d, {"method": "sac", "seed": 0}).resumed_from
+            0
+            >>> _ = (d / "resume_log.json").write_text('[{"event": "resume", "real_steps": 20500}]')
+            >>> Run(d, {"method": "sac", "seed": 0}).resumed_from
+            20500
+        """
+        events = RunFolder(self.path).read_resume_log()
+        steps = [int(e["real_steps"]) for e in events if e.get("event") == "resume"]
+        return steps[-1] if steps else 0
+
+    @property
     def refit_seconds(self) -> float:
         """Seconds spent fitting the world model, over every fit the run logged (0 model-free)."""
         return float(self.scalar("time/model_fit_s")[1].sum())

@@ -1,0 +1,135 @@
+"""The hybrid ablation table: LOOP-style acting and MBPO-style learning beside SAC and SB3's SAC.
+
+    python scripts/hybrid_ablation.py                    # prints the tables, writes the JSON
+    python scripts/hybrid_ablation.py --steps 20000 50000
+
+Reads the committed run folders in ``results/hybrid/runs`` through :mod:`torchrl_mbmf.analysis`:
+the two hybrid ablations of ``results/hybrid/ablation_queue.txt`` (HalfCheetah-v5 to 5e4 real
+steps) and, under the same protocol (every real step counted, ten deterministic evaluation
+episodes every 10,000 real steps), our SAC and Stable-Baselines3's SAC (runs to 1e5). For each
+method and step: the latest evaluation at or before the step and the mean training return of
+the last 10 episodes, per seed and as the IQM over seeds with its 95% bootstrap interval (a
+seed that has not reached the step is left out and the seed count says so). Then the compute:
+wall milliseconds per real step of each finished run over the whole run, and where the time of
+its last process went (the summary's ``time_breakdown``; a resumed run's last process ran from
+its checkpoint). Writes ``results/hybrid/hybrid_ablation.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from torchrl_mbmf.analysis.runs import RETURN_CURVE, Run, final_values, load_runs
+from torchrl_mbmf.analysis.stats import bootstrap_ci, iqm
+
+ROOT = Path(__file__).resolve().parents[1]
+#: ``<label>: run-name pattern`` (the seed is the name's last part).
+METHODS = {
+    "SAC (ours: l2, 50 updates per 50 steps)": r"__sac__l2__fpb50__1e5__seed\d$",
+    "SB3 SAC": r"__sb3_sac__default__1e5__seed\d$",
+    "(a) LOOP-style acting (hybrid_loop)": r"__hybrid_loop__.*__5e4__seed\d$",
+    "(b) MBPO-style learning (hybrid_mbpo)": r"__hybrid_mbpo__.*__5e4__seed\d$",
+}
+MEASURES = {"eval": "eval/return", "train_last10": RETURN_CURVE}
+#: the summary's time parts, in the order printed
+PARTS = ("update_s", "refit_s", "rollout_s", "act_s", "env_s", "other_s")
+
+
+def _cell(values: list[float]) -> tuple[str, dict[str, object]]:
+    """``"IQM [low, high] (n)"`` and its JSON record (``n/a`` without values)."""
+    if not values:
+        return "n/a", {"values": []}
+    ci = bootstrap_ci(values)
+    record = {"values": values, "iqm": float(iqm(values)), "ci95": [ci.low, ci.high]}
+    return f"{float(iqm(values)):,.0f} [{ci.low:,.0f}, {ci.high:,.0f}] ({len(values)})", record
+
+
+def _compute_row(runs: list[Run]) -> dict[str, object]:
+    """Wall ms per real step of the finished runs, and their last process's time split.
+
+    A resumed run's ``summary.json`` times its last process only (from
+    :attr:`~torchrl_mbmf.analysis.runs.Run.resumed_from`): the split is per real step of that
+    segment; the whole-run rate comes from :attr:`~torchrl_mbmf.analysis.runs.Run.wall_seconds`.
+    """
+    done = [r for r in runs if r.summary is not None]
+    if not done:
+        return {"runs": 0}
+    split = {p: [] for p in PARTS}
+    for run in done:
+        steps = int(run.summary["real_steps"]) - run.resumed_from
+        for p in PARTS:
+            split[p].append(1e3 * run.summary.get("time_breakdown", {}).get(p, 0.0) / steps)
+    return {
+        "runs": len(done),
+        "real_steps": int(done[0].summary["real_steps"]),
+        "ms_per_real_step": [1e3 * (r.wall_seconds or 0.0) / r.last_step for r in done],
+        "segment_ms_per_real_step": {p: float(np.mean(v)) for p, v in split.items()},
+        "segment_starts": [r.resumed_from for r in done],
+        "commits": sorted({r.commit for r in done}),
+    }
+
+
+def main() -> None:
+    """Command line."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, nargs="+", default=[20_000, 30_000, 40_000, 50_000])
+    parser.add_argument("--runs", type=Path, default=ROOT / "results/hybrid/runs")
+    parser.add_argument("--out", type=Path, default=ROOT / "results/hybrid/hybrid_ablation.json")
+    args = parser.parse_args()
+    runs = load_runs([args.runs])
+    table: dict[str, dict[str, object]] = {}
+    for label, pattern in METHODS.items():
+        chosen = sorted((r for r in runs if re.search(pattern, r.name)), key=lambda r: r.seed)
+        if not chosen:
+            continue
+        rows: dict[str, object] = {
+            "seeds": [r.seed for r in chosen],
+            "last_step": [r.last_step for r in chosen],
+            "commits": sorted({r.commit for r in chosen}),
+            "compute": _compute_row(chosen),
+        }
+        for step in args.steps:
+            for key, scalar in MEASURES.items():
+                text, record = _cell(final_values(chosen, scalar, at_step=step))
+                rows[f"{key}@{step}"] = {**record, "text": text}
+        table[label] = rows
+    for key, what in (("eval", "evaluation (10 episodes)"), ("train_last10", "last-10 training")):
+        head = " | ".join(f"{s:,}" for s in args.steps)
+        print(f"\n| HalfCheetah-v5, {what} return: IQM [95% CI] (seeds) | {head} |")
+        print("|---" * (len(args.steps) + 1) + "|")
+        for label, rows in table.items():
+            cells = " | ".join(rows[f"{key}@{s}"]["text"] for s in args.steps)
+            print(f"| {label} | {cells} |")
+    print("\n| method | seeds: real steps reached | per seed at the last step (evaluation) |")
+    print("|---|---|---|")
+    last = args.steps[-1]
+    for label, rows in table.items():
+        reached = ", ".join(
+            f"{s}: {n:,}" for s, n in zip(rows["seeds"], rows["last_step"], strict=True)
+        )
+        values = ", ".join(f"{v:,.0f}" for v in rows[f"eval@{last}"]["values"])
+        print(f"| {label} | {reached} | {values or 'n/a'} |")
+    print(
+        "\n| method (finished runs) | wall ms per real step, per seed | last process: resumed "
+        "from | its ms per real step: " + " | ".join(PARTS) + " |"
+    )
+    print("|---" * (len(PARTS) + 3) + "|")
+    for label, rows in table.items():
+        compute = rows["compute"]
+        if not compute["runs"]:
+            continue
+        ms = ", ".join(f"{v:.0f}" for v in compute["ms_per_real_step"])
+        starts = ", ".join(f"{s:,}" for s in compute["segment_starts"])
+        split = " | ".join(f"{compute['segment_ms_per_real_step'][p]:.1f}" for p in PARTS)
+        print(f"| {label} ({compute['real_steps']:,} steps) | {ms} | {starts} | {split} |")
+    args.out.write_text(json.dumps(table, indent=1) + "\n")
+    print(f"\nwrote {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
+
+
+if __name__ == "__main__":
+    main()
