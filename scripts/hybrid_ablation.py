@@ -33,7 +33,8 @@ METHODS = {
     "SAC (ours: l2, 50 updates per 50 steps)": r"__sac__l2__fpb50__1e5__seed\d$",
     "SB3 SAC": r"__sb3_sac__default__1e5__seed\d$",
     "(a) LOOP-style acting (hybrid_loop)": r"__hybrid_loop__.*__5e4__seed\d$",
-    "(b) MBPO-style learning (hybrid_mbpo)": r"__hybrid_mbpo__.*__5e4__seed\d$",
+    "(b) MBPO-style learning (hybrid_mbpo)": r"__hybrid_mbpo__.*-utd5__5e4__seed\d$",
+    "(b2) MBPO-style, 10 updates per real step": r"__hybrid_mbpo__.*-utd10__5e4__seed\d$",
 }
 MEASURES = {"eval": "eval/return", "train_last10": RETURN_CURVE}
 #: the summary's time parts, in the order printed
