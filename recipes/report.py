@@ -45,12 +45,14 @@ def main(cfg: DictConfig) -> None:
             f"no analysis.json for {missing}; run recipes/analyze.py for them first"
         )
     notes = None if cfg.notes is None else check_input_file(cfg.notes, "notes")
+    appendices = [check_input_file(a, "appendices") for a in cfg.get("appendices") or ()]
     out = check_output_path(cfg.out, "out", folder=False)
     write_report(
         analyses,
         out,
         notes=notes,
         commands=list(cfg.commands),
+        appendices=appendices,
         version=torchrl_mbmf.__version__,
         commit=_commit(),
     )

@@ -210,14 +210,18 @@ def test_analyze_and_report_recipes(tmp_path):
     recipe("analyze", f"runs=[{runs}]", f"out_dir={tmp_path / 'short'}", "world_models=[]")
     notes = tmp_path / "NOTES.md"
     notes.write_text("Our discussion.")
+    appendix = tmp_path / "beyond.md"
+    appendix.write_text("## Beyond the thesis\n\nA study of our own.")
     recipe(
         "report",
         f"analyses=[{tmp_path / 'short'}]",
         f"out={tmp_path / 'REPORT.md'}",
         f"notes={notes}",
+        f"appendices=[{appendix}]",
     )
     report = (tmp_path / "REPORT.md").read_text()
     assert "Our discussion." in report and "## Budget `short`" in report
+    assert report.endswith("## Beyond the thesis\n\nA study of our own.\n")
     assert "| Q1 |" in report and "Env__ppo_mpc__default__h10__seed1" in report
     assert "(short/exp2_default_planning.png)" in report
 
@@ -658,12 +662,35 @@ def test_report_refuses_missing_notes_and_unwritable_out_before_any_work(tmp_pat
     blocker = tmp_path / "blocker"
     blocker.write_text("a file where a folder should be")
     out = blocker / "REPORT.md"
-    err = _recipe_fails(tmp_path, "report", f"analyses=[{analysis}]", "notes=null", f"out={out}")
+    err = _recipe_fails(
+        tmp_path, "report", f"analyses=[{analysis}]", "notes=null", "appendices=[]", f"out={out}"
+    )
     assert f"out={str(out)!r} cannot be written" in err
     (analysis / "analysis.json").write_text("{not json")
     with pytest.raises(ValueError, match=r"analysis\.json' is not valid JSON"):
         write_report({"short": analysis}, tmp_path / "REPORT.md")
     assert not (tmp_path / "REPORT.md").exists()
+
+
+def test_report_appends_appendices_in_order_and_refuses_a_missing_one_before_writing(tmp_path):
+    analysis = tmp_path / "short"
+    analysis.mkdir()
+    (analysis / "analysis.json").write_text("{}")
+    first, second = tmp_path / "a.md", tmp_path / "b.md"
+    first.write_text("## Beyond A\n\nfirst study\n")
+    second.write_text("## Beyond B\n\nsecond study\n\n")
+    text = write_report({}, tmp_path / "REPORT.md", appendices=[first, second])
+    assert text.index("Conventions:") < text.index("## Beyond A") < text.index("## Beyond B")
+    assert text.endswith("first study\n\n## Beyond B\n\nsecond study\n")
+    with pytest.raises(FileNotFoundError, match=r"appendices='.*missing\.md' is not a file"):
+        write_report(
+            {"short": analysis}, tmp_path / "OTHER.md", appendices=[tmp_path / "missing.md"]
+        )
+    assert not (tmp_path / "OTHER.md").exists()
+    err = _recipe_fails(
+        tmp_path, "report", f"analyses=[{analysis}]", "notes=null", "appendices=[/nonexistent.md]"
+    )
+    assert "appendices='/nonexistent.md' is not a file" in err
 
 
 @pytest.mark.parametrize(

@@ -439,6 +439,7 @@ def write_report(
     *,
     notes: str | Path | None = None,
     commands: Sequence[str] = (),
+    appendices: Sequence[str | Path] = (),
     version: str = "",
     commit: str = "",
 ) -> str:
@@ -452,6 +453,8 @@ def write_report(
         notes: a Markdown file included after the header (the authors' discussion: where and
             why results agree or disagree with the thesis, what ran where).
         commands: the commands that produced the runs, listed in the report.
+        appendices: Markdown files appended after the budgets' sections, in order (studies
+            beyond the thesis, each written by its own script from its own runs).
         version: package version to state.
         commit: git commit to state.
 
@@ -459,8 +462,8 @@ def write_report(
         The report text.
 
     Raises:
-        FileNotFoundError: when ``notes`` is given but is not a readable file, or an analysis
-            folder lacks its ``analysis.json``.
+        FileNotFoundError: when ``notes`` or an appendix is not a readable file, or an
+            analysis folder lacks its ``analysis.json``.
         ValueError: when ``path`` cannot be written, or an ``analysis.json`` is not valid
             JSON (the file is named); all checked before anything is written.
 
@@ -470,6 +473,7 @@ def write_report(
     """
     path = check_output_path(path, "path", folder=False)
     notes_text = None if notes is None else check_input_file(notes, "notes").read_text()
+    appendix_texts = [check_input_file(a, "appendices").read_text() for a in appendices]
     loaded = {name: _read_analysis(Path(folder)) for name, folder in analyses.items()}
     lines = [
         "# torchrl_mbmf: experiments of the thesis, reproduced",
@@ -495,6 +499,8 @@ def write_report(
     for name, folder in analyses.items():
         rel = os.path.relpath(Path(folder), path.parent)
         lines += _section(name, loaded[name], rel)
+    for appendix in appendix_texts:
+        lines += [appendix.strip(), ""]
     text = "\n".join(lines).rstrip() + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
