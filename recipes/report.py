@@ -45,7 +45,7 @@ def main(cfg: DictConfig) -> None:
             f"no analysis.json for {missing}; run recipes/analyze.py for them first"
         )
     notes = None if cfg.notes is None else check_input_file(cfg.notes, "notes")
-    appendices = [check_input_file(a, "appendices") for a in cfg.get("appendices") or ()]
+    appendices = [check_input_file(a, "appendices") for a in cfg.appendices or ()]
     out = check_output_path(cfg.out, "out", folder=False)
     write_report(
         analyses,
