@@ -22,10 +22,8 @@ import json
 import re
 from pathlib import Path
 
-import numpy as np
-
-from torchrl_mbmf.analysis.runs import RETURN_CURVE, Run, final_values, load_runs
-from torchrl_mbmf.analysis.stats import bootstrap_ci, iqm
+from torchrl_mbmf.analysis.runs import RETURN_CURVE, final_values, load_runs
+from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_split, iqm_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 #: ``<label>: run-name pattern`` (the seed is the name's last part).
@@ -37,42 +35,7 @@ METHODS = {
     "(b2) MBPO-style, 10 updates per real step": r"__hybrid_mbpo__.*-utd10__5e4__seed\d$",
 }
 MEASURES = {"eval": "eval/return", "train_last10": RETURN_CURVE}
-#: the summary's time parts, in the order printed
-PARTS = ("update_s", "refit_s", "rollout_s", "act_s", "env_s", "other_s")
-
-
-def _cell(values: list[float]) -> tuple[str, dict[str, object]]:
-    """``"IQM [low, high] (n)"`` and its JSON record (``n/a`` without values)."""
-    if not values:
-        return "n/a", {"values": []}
-    ci = bootstrap_ci(values)
-    record = {"values": values, "iqm": float(iqm(values)), "ci95": [ci.low, ci.high]}
-    return f"{float(iqm(values)):,.0f} [{ci.low:,.0f}, {ci.high:,.0f}] ({len(values)})", record
-
-
-def _compute_row(runs: list[Run]) -> dict[str, object]:
-    """Wall ms per real step of the finished runs, and their last process's time split.
-
-    A resumed run's ``summary.json`` times its last process only (from
-    :attr:`~torchrl_mbmf.analysis.runs.Run.resumed_from`): the split is per real step of that
-    segment; the whole-run rate comes from :attr:`~torchrl_mbmf.analysis.runs.Run.wall_seconds`.
-    """
-    done = [r for r in runs if r.summary is not None]
-    if not done:
-        return {"runs": 0}
-    split = {p: [] for p in PARTS}
-    for run in done:
-        steps = int(run.summary["real_steps"]) - run.resumed_from
-        for p in PARTS:
-            split[p].append(1e3 * run.summary.get("time_breakdown", {}).get(p, 0.0) / steps)
-    return {
-        "runs": len(done),
-        "real_steps": int(done[0].summary["real_steps"]),
-        "ms_per_real_step": [1e3 * (r.wall_seconds or 0.0) / r.last_step for r in done],
-        "segment_ms_per_real_step": {p: float(np.mean(v)) for p, v in split.items()},
-        "segment_starts": [r.resumed_from for r in done],
-        "commits": sorted({r.commit for r in done}),
-    }
+PARTS = TIME_PARTS
 
 
 def main() -> None:
@@ -92,11 +55,11 @@ def main() -> None:
             "seeds": [r.seed for r in chosen],
             "last_step": [r.last_step for r in chosen],
             "commits": sorted({r.commit for r in chosen}),
-            "compute": _compute_row(chosen),
+            "compute": compute_split(chosen),
         }
         for step in args.steps:
             for key, scalar in MEASURES.items():
-                text, record = _cell(final_values(chosen, scalar, at_step=step))
+                text, record = iqm_cell(final_values(chosen, scalar, at_step=step))
                 rows[f"{key}@{step}"] = {**record, "text": text}
         table[label] = rows
     for key, what in (("eval", "evaluation (10 episodes)"), ("train_last10", "last-10 training")):

@@ -8,6 +8,7 @@ from torchrl_mbmf.analysis.stats import (
     first_step_reaching,
     interpolate_curve,
     iqm,
+    iqm_ratio_ci,
     rolling_window_stats,
 )
 
@@ -58,3 +59,26 @@ def test_first_step_and_interpolation():
     out = interpolate_curve([100, 200, 300], [1.0, 2.0, 3.0], [0, 100, 150, 299, 300, 1000])
     np.testing.assert_array_equal(out, [np.nan, 1.0, 1.0, 2.0, 3.0, 3.0])
     assert np.isnan(interpolate_curve([], [], [1, 2])).all()
+
+
+def test_iqm_ratio_ci_matches_a_brute_force_bootstrap_and_rejects_bad_input():
+    cand = np.array([5.0, 6.0, 7.0, 6.5, 6.2])
+    ref = np.array([4.0, 5.5, 5.0, 4.8, 5.9])
+    ci = iqm_ratio_ci(cand, ref, n_resamples=4000, seed=3)
+    assert ci.estimate == pytest.approx(iqm(cand) / iqm(ref))
+    assert ci.n == 5 and ci.low < ci.estimate < ci.high
+    # the same bootstrap written out resample by resample
+    rng = np.random.default_rng(3)
+    draws_c = rng.integers(0, 5, (4000, 5))
+    draws_r = rng.integers(0, 5, (4000, 5))
+    ratios = [iqm(cand[c]) / iqm(ref[r]) for c, r in zip(draws_c, draws_r, strict=True)]
+    assert [ci.low, ci.high] == pytest.approx(np.percentile(ratios, [2.5, 97.5]))
+    # constant seeds: no spread, the interval is the ratio itself
+    point = iqm_ratio_ci([6.0, 6.0], [3.0, 3.0])
+    assert (point.low, point.estimate, point.high) == pytest.approx((2.0, 2.0, 2.0))
+    with pytest.raises(ValueError, match="positive"):
+        iqm_ratio_ci([1.0], [0.0, 2.0])
+    with pytest.raises(ValueError, match="both sides"):
+        iqm_ratio_ci([], [1.0])
+    with pytest.raises(ValueError, match="confidence"):
+        iqm_ratio_ci([1.0], [1.0], confidence=1.5)

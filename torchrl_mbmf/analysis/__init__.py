@@ -32,11 +32,14 @@ from torchrl_mbmf.analysis.stats import (
     interpolate_curve,
     interval_summary,
     iqm,
+    iqm_ratio_ci,
     rolling_window_stats,
 )
+from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_split, iqm_cell
 from torchrl_mbmf.objectives.open_loop import HorizonError, multistep_mse, open_loop_rollout
 
 __all__ = [
+    "TIME_PARTS",
     "Curve",
     "GaitMetrics",
     "HorizonError",
@@ -47,6 +50,7 @@ __all__ = [
     "bootstrap_ci",
     "collect_runs",
     "compare_intervals",
+    "compute_split",
     "final_values",
     "first_step_reaching",
     "fixed_threshold_table",
@@ -59,6 +63,8 @@ __all__ = [
     "interval_of",
     "interval_summary",
     "iqm",
+    "iqm_cell",
+    "iqm_ratio_ci",
     "load_runs",
     "multistep_mse",
     "open_loop_rollout",

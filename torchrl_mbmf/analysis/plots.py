@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,7 @@ def plot_curves(
     hline: float | None = None,
     hline_label: str = "reference maximum",
     band: bool = True,
+    anchors: Mapping[str, Sequence[tuple[float, float, float]]] | None = None,
 ) -> None:
     """Plots across-seed curves: IQM line, 95% bootstrap interval and the min-max band.
 
@@ -51,6 +52,8 @@ def plot_curves(
         hline: a dotted horizontal line (for example the PPO maximum).
         hline_label: legend of ``hline``.
         band: draw the min-max band. Defaults to ``True``.
+        anchors: ``{label: [(step, low, high), ...]}`` published numbers drawn in grey beside
+            the curves: a marker where ``low == high``, a vertical bar for a range.
 
     Examples:
         >>> import tempfile, os
@@ -64,9 +67,13 @@ def plot_curves(
         >>> two = Curve(x, y, y, y, y, y, np.array([y, [0.0, 1.0, np.nan]]), [0, 1])
         >>> with tempfile.TemporaryDirectory() as d:  # seed 1 stops: dashed after step 2
         ...     plot_curves({"ppo": two}, os.path.join(d, "c.png"))
+        >>> with tempfile.TemporaryDirectory() as d:  # a published point and a published range
+        ...     plot_curves({"ppo": c}, os.path.join(d, "c.png"),
+        ...                 anchors={"MBPO": [(3, 2.5, 2.5)], "SAC": [(3, 1.0, 1.5)]})
     """
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    # published anchors add legend rows: the legend then goes beside the axes, not over them
+    fig, ax = plt.subplots(figsize=(10.5, 4.8) if anchors else (7.5, 4.5))
     for i, (label, c) in enumerate(curves.items()):
         color = f"C{i}"
         n = len(c.seeds)
@@ -93,6 +100,21 @@ def plot_curves(
             ax.fill_between(c.steps, c.band_min, c.band_max, color=color, alpha=0.08, linewidth=0)
     for j, (label, step) in enumerate((vlines or {}).items()):
         ax.axvline(step, color="k", linestyle="--", linewidth=1, alpha=0.6 - 0.15 * j, label=label)
+    for j, (label, rows) in enumerate((anchors or {}).items()):
+        steps, low, high = (np.asarray(v, dtype=float) for v in zip(*rows, strict=True))
+        marker = "osD^v<>ph*"[j % 10]
+        ax.plot(
+            steps,
+            (low + high) / 2,
+            linestyle="none",
+            marker=marker,
+            color="0.35",
+            markerfacecolor="none",
+            label=f"{label} (published)",
+        )
+        ranged = high > low
+        if ranged.any():
+            ax.vlines(steps[ranged], low[ranged], high[ranged], color="0.35", linewidth=1.5)
     if hline is not None:
         ax.axhline(hline, color="k", linestyle=":", linewidth=1, label=hline_label)
     ax.set_xlabel(xlabel)
@@ -100,7 +122,10 @@ def plot_curves(
     if title:
         ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="best")
+    if anchors:
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    else:
+        ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -1,0 +1,83 @@
+"""Table cells of the result scripts: an IQM with its interval, and a run's compute per step."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from torchrl_mbmf.analysis.runs import Run
+from torchrl_mbmf.analysis.stats import bootstrap_ci, iqm
+
+#: the parts of a run's ``summary.json`` ``time_breakdown``, in the order tables print them
+TIME_PARTS = ("update_s", "refit_s", "rollout_s", "act_s", "env_s", "other_s")
+
+
+def iqm_cell(values: Sequence[float]) -> tuple[str, dict[str, object]]:
+    """A table cell ``"IQM [low, high] (seeds)"`` and its JSON record.
+
+    Args:
+        values: one number per seed (an empty sequence gives ``"n/a"``).
+
+    Returns:
+        ``(text, record)``: the record holds ``values``, and with values also ``iqm`` and
+        ``ci95`` (the 95% percentile-bootstrap interval of :func:`bootstrap_ci`).
+
+    Examples:
+        >>> from torchrl_mbmf.analysis.tables import iqm_cell
+        >>> iqm_cell([1000.0, 1000.0])[0]
+        '1,000 [1,000, 1,000] (2)'
+        >>> iqm_cell([])
+        ('n/a', {'values': []})
+    """
+    if not len(values):
+        return "n/a", {"values": []}
+    values = [float(v) for v in values]
+    ci = bootstrap_ci(values)
+    record = {"values": values, "iqm": float(iqm(values)), "ci95": [ci.low, ci.high]}
+    return f"{float(iqm(values)):,.0f} [{ci.low:,.0f}, {ci.high:,.0f}] ({len(values)})", record
+
+
+def compute_split(runs: Sequence[Run]) -> dict[str, object]:
+    """Wall milliseconds per real step of the finished runs, and where their last process went.
+
+    A resumed run's ``summary.json`` times its last process only (from
+    :attr:`~torchrl_mbmf.analysis.runs.Run.resumed_from`): the split is per real step of that
+    segment, averaged over the runs; the whole-run rate comes from
+    :attr:`~torchrl_mbmf.analysis.runs.Run.wall_seconds`.
+
+    Args:
+        runs: runs of one configuration; those without ``summary.json`` (unfinished) are left
+            out.
+
+    Returns:
+        ``{"runs": 0}`` without a finished run, else ``runs``, ``real_steps`` (of the first),
+        ``ms_per_real_step`` (per run), ``segment_ms_per_real_step`` (``{part: ms}`` over
+        :data:`TIME_PARTS`), ``segment_starts`` (per run) and ``commits``.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run
+        >>> from torchrl_mbmf.analysis.tables import compute_split
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> summary = {"real_steps": 1000, "seconds": 4.0, "time_breakdown": {"update_s": 3.0}}
+        >>> split = compute_split([Run(d, {"method": "sac", "seed": 0}, summary)])
+        >>> split["ms_per_real_step"], split["segment_ms_per_real_step"]["update_s"]
+        ([4.0], 3.0)
+    """
+    done = [r for r in runs if r.summary is not None]
+    if not done:
+        return {"runs": 0}
+    split: dict[str, list[float]] = {p: [] for p in TIME_PARTS}
+    for run in done:
+        steps = int(run.summary["real_steps"]) - run.resumed_from
+        for p in TIME_PARTS:
+            split[p].append(1e3 * run.summary.get("time_breakdown", {}).get(p, 0.0) / steps)
+    return {
+        "runs": len(done),
+        "real_steps": int(done[0].summary["real_steps"]),
+        "ms_per_real_step": [1e3 * (r.wall_seconds or 0.0) / r.last_step for r in done],
+        "segment_ms_per_real_step": {p: float(np.mean(v)) for p, v in split.items()},
+        "segment_starts": [r.resumed_from for r in done],
+        "commits": sorted({r.commit for r in done}),
+    }
