@@ -174,11 +174,42 @@ def claim_owner(root: Path, name: str) -> int | None:
     return pid if _alive(pid) else None
 
 
+def finished(folder: Path, run: QueuedRun) -> bool:
+    """Whether ``folder`` holds the run finished at the budget its queue line names now.
+
+    A ``train`` run that finished short of a ``total_steps`` raised on its line since (its
+    ``summary.json`` counts fewer real steps) is not finished: it continues from its last
+    checkpoint to the new budget.
+
+    Args:
+        folder: the run folder (on this machine or its committed copy).
+        run: the queued run.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> _ = (d / "summary.json").write_text('{"real_steps": 100000}')
+        >>> run = QueuedRun("r", "train", ("method=sac", "total_steps=200000"))
+        >>> finished(d, run), finished(d, QueuedRun("r", "train", ("method=sac",)))
+        (False, True)
+    """
+    path = folder / "summary.json"
+    if not path.exists():
+        return False
+    overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
+    if not run.resumable or "total_steps" not in overrides:
+        return True
+    steps = json.loads(path.read_text()).get("real_steps")
+    return steps is None or int(steps) >= int(overrides["total_steps"])
+
+
 def run_state(root: Path, run: QueuedRun, results: Path | None = None) -> str:
-    """``done``, ``running`` (a live claim), ``interrupted`` (a folder, no summary) or ``queued``.
+    """``done``, ``running`` (a live claim), ``raised``, ``interrupted`` or ``queued``.
 
     A run is also ``done`` when its committed copy in ``results`` holds a summary: on a fresh
-    machine, whose run root is empty, a finished run is not run again.
+    machine, whose run root is empty, a finished run is not run again. A run is ``raised`` when
+    it finished here short of a budget raised on its queue line since (see :func:`finished`),
+    ``interrupted`` when it has a folder and no summary.
 
     Args:
         root: the campaign's run root.
@@ -186,12 +217,14 @@ def run_state(root: Path, run: QueuedRun, results: Path | None = None) -> str:
         results: where finished runs' committed copies are (``None``: only ``root`` counts).
     """
     folder = root / run.name
-    if (folder / "summary.json").exists():
+    if finished(folder, run):
         return "done"
-    if results is not None and (results / run.name / "summary.json").exists():
+    if results is not None and finished(results / run.name, run):
         return "done"
     if claim_owner(root, run.name) is not None:
         return "running"
+    if (folder / "summary.json").exists():
+        return "raised"
     if (folder / "logs").exists():
         return "interrupted"
     return "queued"
@@ -277,7 +310,14 @@ def claim_next(
             if run.name not in skip and run_state(root, run, results) not in ("done", "running")
         ]
         left = _seconds_left(stop_at)
-        here = [r for r in open_runs if r.resumable and (root / r.name / "logs").exists()]
+        # interrupted here (a raised budget puts nothing at risk: it keeps its queue place)
+        here = [
+            r
+            for r in open_runs
+            if r.resumable
+            and (root / r.name / "logs").exists()
+            and not (root / r.name / "summary.json").exists()
+        ]
         first = sorted(open_runs, key=lambda r: r not in here)  # stable: else queue order
         fits = [r for r in first if at_risk_seconds(r, _last_step(root / r.name)) <= left]
         fresh_fits = lambda r: at_risk_seconds(r) <= 60.0 * FRESH_SESSION_MIN  # noqa: E731
@@ -503,7 +543,7 @@ def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
         fcntl.flock(lock, fcntl.LOCK_EX)
         for run in queue:
             copy = results / run.name
-            if (root / run.name).exists() or (copy / "summary.json").exists():
+            if (root / run.name).exists() or finished(copy, run):
                 continue
             if latest_checkpoint(copy) is None:
                 continue
@@ -677,7 +717,7 @@ def ledger_table(
     ]
     for run in queue:
         folder = root / run.name
-        finished_elsewhere = results is not None and (results / run.name / "summary.json").exists()
+        finished_elsewhere = results is not None and finished(results / run.name, run)
         if results is not None and (not folder.exists() or finished_elsewhere):
             folder = results / run.name
         state = run_state(root, run) if (root / run.name).exists() else "queued"
@@ -685,7 +725,7 @@ def ledger_table(
             state = "done"
         if not (root / run.name).exists() and (folder / "logs").exists():
             # only the committed copy: done, or lost with the machine (restarts from 0)
-            state = "done" if (folder / "summary.json").exists() else "lost, restarts"
+            state = "done" if finished(folder, run) else "lost, restarts"
             if state != "done" and latest_checkpoint(folder) is not None:
                 state = "interrupted, resumes from its committed checkpoint"
         mine = [e for e in events if e.get("run") == run.name]

@@ -227,6 +227,39 @@ def test_snapshot_keeps_small_checkpoints_and_a_fresh_machine_restores_them(tmp_
     assert done.startswith("| a | done | 3,000 |")
 
 
+def test_a_budget_raised_on_its_line_continues_a_finished_run_in_queue_order(tmp_path):
+    root, results = tmp_path / "machine1" / "runs", tmp_path / "results"
+    first = "x train method=sac seed=0 total_steps=2000\ny train method=sac seed=1\n"
+    queue = _queue(tmp_path, first)
+    for name in ("x", "y"):
+        _partial_run(root, name, 100)
+        (root / name / "summary.json").write_text('{"real_steps": 2000}')
+    assert [campaign.run_state(root, r) for r in queue] == ["done", "done"]
+    # x's line raised to 4000 (y names no total_steps: its summary ends it, as before)
+    queue = _queue(tmp_path, first.replace("2000", "4000") + "z train method=ppo seed=0\n")
+    (root / "z" / "logs").mkdir(parents=True)  # interrupted here
+    assert campaign.run_state(root, queue[0]) == "raised"
+    assert campaign.run_state(root, queue[1]) == "done"
+    # the interrupted run goes first, the raised one keeps its queue place after it
+    assert campaign.claim_next(root, queue, None).name == "z"
+    assert campaign.claim_next(root, queue, None).name == "x"
+    for name in ("x", "z"):
+        (root / ".claims" / name).unlink()
+    # its committed copy does not count as done, and carries its checkpoint
+    assert campaign.snapshot(root, queue, results) == ["x", "z"]
+    assert (results / "x" / "checkpoints" / "checkpoint-000000002000").is_dir()
+    table = campaign.ledger_table(root, queue, results)
+    assert "| x | raised | 2,000 | 4,000 |" in table
+    fresh = tmp_path / "machine2" / "runs"
+    fresh.mkdir(parents=True)
+    assert campaign.run_state(fresh, queue[0], results) == "queued"
+    assert campaign.restore(fresh, queue, results) == ["x"]
+    assert campaign.run_state(fresh, queue[0], results) == "raised"
+    # once it reaches the raised budget it is done everywhere
+    (results / "x" / "summary.json").write_text('{"real_steps": 4000}')
+    assert campaign.run_state(fresh, queue[0], results) == "done"
+
+
 TINY_PLANNING = [
     "method=ppo_mpc",
     "env=pendulum",
