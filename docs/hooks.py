@@ -16,6 +16,7 @@ PATTERNS = (
     "results/REPORT.md",
     "results/short/*.png",
     "results/thesis/*.png",
+    "results/hybrid/*.png",
     "results/thesis/runs/*/policy.mp4",
 )
 
