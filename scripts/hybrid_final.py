@@ -105,11 +105,15 @@ def _ratio(candidate: list[float], reference: list[float]) -> dict[str, object]:
 
 
 def _figure(task: str, groups: dict[str, list[Run]], path: Path) -> list[str]:
-    """The evaluation curves of the hybrid and both SACs (their longest runs with every seed)."""
+    """The evaluation curves of the hybrid and both SACs.
+
+    Each SAC's 2e5 runs once as many of them have finished as it has 1e5 runs, else its 1e5 runs.
+    """
     shown: dict[str, list[Run]] = {}
     for name in ("SAC (ours)", "SB3 SAC"):
         longer, shorter = groups.get(f"{name}, 2e5 runs", []), groups.get(f"{name}, 1e5 runs", [])
-        runs = longer if longer and len(longer) >= len(shorter) else shorter
+        whole = sum(r.summary is not None for r in longer)  # partial copies do not count
+        runs = longer if longer and whole >= len(shorter) else shorter
         if runs:
             shown[f"{name}, {'2e5' if runs is longer else '1e5'} runs"] = runs
     if groups.get(HYBRID):

@@ -162,6 +162,38 @@ def test_changed_training_settings_are_refused_and_safe_ones_recorded(tmp_path):
     assert changes["eval_every"] == {"checkpoint": 800, "now": 300}
     assert changes["checkpoint.keep_last"] == {"checkpoint": 2, "now": 3}
     assert "total_steps: 800" in (run / "config.yaml").read_text()
+    # the finished run's summary it continued from is kept in the resume log (the first run
+    # stopped at the batch boundary past 400)
+    assert entries[-1]["previous_summary"]["real_steps"] == 480
+
+
+def test_a_finished_run_continued_is_unfinished_until_its_new_summary(tmp_path):
+    run = tmp_path / "run"
+    cfg = ["method=ppo", *TINY, "total_steps=400", "checkpoint.every_steps=160"]
+    assert _run(run, *cfg).returncode == 0
+    first = json.loads((run / "summary.json").read_text())
+    raised = [*cfg, "total_steps=1600"]
+    proc = subprocess.Popen(
+        [sys.executable, TRAIN, *raised, f"run_dir={run}"],
+        cwd=run.parent,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=ENV,
+    )
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if (run / "resume_log.json").exists() and not (run / "summary.json").exists():
+            break
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    # killed while continuing: no summary claims the run finished; the old one is in the log
+    assert not (run / "summary.json").exists()
+    (entry,) = json.loads((run / "resume_log.json").read_text())
+    assert entry["previous_summary"] == first
+    proc = _run(run, *raised)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run / "summary.json").read_text())["real_steps"] == 1600
 
 
 # Checkpoints at 460 (the first after the 300 random steps and one planning batch), 620 (where

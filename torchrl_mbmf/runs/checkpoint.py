@@ -25,6 +25,7 @@ kept as what rebuilds them exactly).
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -39,7 +40,7 @@ from torchrl.record.loggers import CSVLogger, Logger
 from torchrl_mbmf.checks import ConfigError
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.runs.export import save_policy
-from torchrl_mbmf.runs.layout import CHECKPOINTS
+from torchrl_mbmf.runs.layout import CHECKPOINTS, SUMMARY
 from torchrl_mbmf.runs.logs import append_resume_log, cut_csv_logs
 from torchrl_mbmf.runs.resume import (
     RESUME_SAFE_SETTINGS,
@@ -268,6 +269,7 @@ class RunCheckpoint:
         self.progress["config"] = config
         self.progress["fingerprint"] = expected
         cut = self._cut_logs(self.logger.experiment.scalars if self._csv_logs() else {})
+        previous = self._raised_summary(config)
         append_resume_log(
             self.run_dir,
             {
@@ -278,10 +280,27 @@ class RunCheckpoint:
                     key: {"checkpoint": old, "now": new} for key, (old, new) in allowed.items()
                 },
                 "removed_rows": cut,
+                **({} if previous is None else {"previous_summary": previous}),
             },
         )
+        if previous is not None:
+            # a finished run continued to a raised total_steps is unfinished again until it
+            # writes its new summary; the old one is kept in the entry just logged
+            (Path(self.run_dir) / SUMMARY).unlink()
         logger.info("resumed from %s at %d real steps", latest, self.progress["real_steps"])
         return True
+
+    def _raised_summary(self, config: Mapping[str, Any]) -> dict[str, Any] | None:
+        """The folder's ``summary.json`` if it ends short of ``config``'s ``total_steps``."""
+        path = Path(self.run_dir) / SUMMARY
+        if not path.exists():
+            return None
+        summary = json.loads(path.read_text())
+        total = config.get("total_steps")
+        done = summary.get("real_steps")
+        if isinstance(total, int) and isinstance(done, int) and done < total:
+            return summary
+        return None
 
     def _check_compatible(
         self, latest: Path, expected: dict[str, Any], config: dict[str, Any]
