@@ -94,9 +94,9 @@ def _rows(chosen: list[Run], steps: list[int]) -> dict[str, object]:
 
 
 def _ratio(candidate: list[float], reference: list[float]) -> dict[str, object]:
-    """``{"text", ...}``: the IQM ratio with its interval, or ``n/a`` without both sides."""
-    if not candidate or not reference or min(reference) <= 0:
-        return {"text": "n/a"}
+    """``{"text", ...}``: the IQM ratio with its interval (``n/a`` under two seeds a side)."""
+    if len(candidate) < 2 or len(reference) < 2 or min(reference) <= 0:
+        return {"text": "n/a"}  # an interval needs two seeds a side
     ci = iqm_ratio_ci(candidate, reference)
     text = (
         f"{ci.estimate:.2f}x [{ci.low:.2f}, {ci.high:.2f}] ({len(candidate)} vs {len(reference)})"
