@@ -23,7 +23,7 @@ import re
 from pathlib import Path
 
 from torchrl_mbmf.analysis.runs import RETURN_CURVE, final_values, load_runs
-from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_split, iqm_cell
+from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_row, compute_split, iqm_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 #: ``<label>: run-name pattern`` (the seed is the name's last part).
@@ -84,13 +84,8 @@ def main() -> None:
     )
     print("|---" * (len(PARTS) + 3) + "|")
     for label, rows in table.items():
-        compute = rows["compute"]
-        if not compute["runs"]:
-            continue
-        ms = ", ".join(f"{v:.0f}" for v in compute["ms_per_real_step"])
-        starts = ", ".join(f"{s:,}" for s in compute["segment_starts"])
-        split = " | ".join(f"{compute['segment_ms_per_real_step'][p]:.1f}" for p in PARTS)
-        print(f"| {label} ({compute['real_steps']:,} steps) | {ms} | {starts} | {split} |")
+        if (row := compute_row(label, rows["compute"])) is not None:
+            print(row)
     args.out.write_text(json.dumps(table, indent=1) + "\n")
     print(f"\nwrote {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
 

@@ -31,7 +31,7 @@ import numpy as np
 from torchrl_mbmf.analysis.plots import plot_curves
 from torchrl_mbmf.analysis.runs import RETURN_CURVE, Run, aggregate_curve, final_values, load_runs
 from torchrl_mbmf.analysis.stats import iqm_ratio_ci
-from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_split, iqm_cell
+from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_row, compute_split, iqm_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 HYBRID = "hybrid_mbpo (final)"
@@ -207,13 +207,8 @@ def main() -> None:
         )
         print("|---" * (len(TIME_PARTS) + 3) + "|")
         for label, rows in table.items():
-            compute = rows["compute"]
-            if not compute["runs"]:
-                continue
-            ms = ", ".join(f"{v:.0f}" for v in compute["ms_per_real_step"])
-            starts = ", ".join(f"{s:,}" for s in compute["segment_starts"])
-            split = " | ".join(f"{compute['segment_ms_per_real_step'][p]:.1f}" for p in TIME_PARTS)
-            print(f"| {label} ({compute['real_steps']:,} steps) | {ms} | {starts} | {split} |")
+            if (row := compute_row(label, rows["compute"])) is not None:
+                print(row)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"\nwrote {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
 

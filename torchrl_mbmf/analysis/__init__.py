@@ -35,7 +35,7 @@ from torchrl_mbmf.analysis.stats import (
     iqm_ratio_ci,
     rolling_window_stats,
 )
-from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_split, iqm_cell
+from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_row, compute_split, iqm_cell
 from torchrl_mbmf.objectives.open_loop import HorizonError, multistep_mse, open_loop_rollout
 
 __all__ = [
@@ -50,6 +50,7 @@ __all__ = [
     "bootstrap_ci",
     "collect_runs",
     "compare_intervals",
+    "compute_row",
     "compute_split",
     "final_values",
     "first_step_reaching",

@@ -81,3 +81,28 @@ def compute_split(runs: Sequence[Run]) -> dict[str, object]:
         "segment_starts": [r.resumed_from for r in done],
         "commits": sorted({r.commit for r in done}),
     }
+
+
+def compute_row(label: str, compute: dict[str, object]) -> str | None:
+    """The Markdown row of :func:`compute_split`'s record (``None`` without a finished run).
+
+    Args:
+        label: the method's name, first cell of the row.
+        compute: :func:`compute_split`'s record.
+
+    Examples:
+        >>> from torchrl_mbmf.analysis.tables import compute_row
+        >>> split = {p: 0.0 for p in TIME_PARTS}
+        >>> record = {"runs": 1, "real_steps": 1000, "ms_per_real_step": [4.0],
+        ...           "segment_starts": [0], "segment_ms_per_real_step": split}
+        >>> compute_row("sac", record)
+        '| sac (1,000 steps) | 4 | 0 | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 |'
+        >>> compute_row("sac", {"runs": 0}) is None
+        True
+    """
+    if not compute["runs"]:
+        return None
+    ms = ", ".join(f"{v:.0f}" for v in compute["ms_per_real_step"])
+    starts = ", ".join(f"{s:,}" for s in compute["segment_starts"])
+    split = " | ".join(f"{compute['segment_ms_per_real_step'][p]:.1f}" for p in TIME_PARTS)
+    return f"| {label} ({compute['real_steps']:,} steps) | {ms} | {starts} | {split} |"
