@@ -382,6 +382,8 @@ def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
     :func:`restore` can continue the run on a machine that lacks its folder. PPO checkpoints are
     small, and so are a PPO-MPC run's once it fine-tunes (they leave the dataset out); those of
     its planning phase, of MPC and of SAC hold the dataset or the replay buffer and stay behind.
+    A run whose committed copy already holds its latest checkpoint (restored from it, not yet
+    past it) is left as committed.
 
     Args:
         root: the campaign's run root.
@@ -398,8 +400,10 @@ def snapshot(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
         if run_state(root, run, results) == "done" or not (folder / "logs").exists():
             continue
         dest = results / run.name
-        copy_small_files(folder, dest, str(root.parent) + os.sep)
         latest = latest_checkpoint(folder)
+        if latest is not None and (dest / "checkpoints" / latest.name).is_dir():
+            continue  # restored from its committed copy and not past it: kept as committed
+        copy_small_files(folder, dest, str(root.parent) + os.sep)
         target = None if latest is None else dest / "checkpoints" / latest.name
         if latest is not None and _size(latest) <= SMALL_CHECKPOINT_BYTES:
             shutil.copytree(latest, target)
@@ -521,17 +525,28 @@ def _compact(folder: Path, checkpoint: Path, target: Path) -> bool:
     return True
 
 
-def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
+def restore(
+    root: Path, queue: list[QueuedRun], results: Path, *, rerun_model_replay: bool = False
+) -> list[str]:
     """Recreates the folders of unfinished runs whose committed copy holds a checkpoint.
 
     Only where ``root`` lacks the run's folder (a fresh machine): the committed small files and
     checkpoint are copied into ``root/<name>``, and the run resumes from that checkpoint (its
-    logs are cut back to it on resume, as after any interruption).
+    logs are cut back to it on resume, as after any interruption). A checkpoint that does not
+    rebuild bit for bit is lost (the run starts again from 0), except with
+    ``rerun_model_replay``: where the only files that differ are ``sac_mbpo``'s model replay
+    re-run from its rounds' record (another CPU can round a few imagined values differently),
+    the re-run rows are accepted, their integrity entries rewritten and the event logged with
+    the files; everything else must still match as saved.
 
     Args:
         root: the campaign's run root.
         queue: the queue.
         results: where the committed copies are.
+
+    Keyword Args:
+        rerun_model_replay: accept a model replay that re-runs differently on this machine.
+            Defaults to ``False``.
 
     Returns:
         The names restored.
@@ -552,8 +567,15 @@ def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
             shutil.copytree(copy, staging)
             checkpoint = latest_checkpoint(staging)
             relocate_checkpoint(checkpoint, ROOT_MARK, str(root))
+            rerun: list[str] = []
             try:
-                replayed = _expand(staging, checkpoint)
+                try:
+                    replayed = _expand(staging, checkpoint)
+                except Exception:
+                    rerun = _rerun_model_replay(checkpoint) if rerun_model_replay else []
+                    if not rerun:
+                        raise
+                    replayed = True
             except Exception as err:  # the run starts again from 0, as a lost one
                 shutil.rmtree(staging)
                 step = int(checkpoint.name.removeprefix("checkpoint-"))
@@ -568,9 +590,31 @@ def restore(root: Path, queue: list[QueuedRun], results: Path) -> list[str]:
                 run=run.name,
                 checkpoint=checkpoint.name,
                 **({"replayed": True} if replayed else {}),
+                **({"model_replay_rerun": rerun} if rerun else {}),
             )
             restored.append(run.name)
     return restored
+
+
+def _rerun_model_replay(checkpoint: Path) -> list[str]:
+    """Accepts a fully rebuilt checkpoint whose only changed files are its model replay's rows.
+
+    Returns the files whose entries were rewritten; none (nothing written) where any other file
+    differs, is missing or is not listed (a rebuild that stopped early leaves its records).
+    """
+    from torchrl_mbmf.runs.buffer_replay import replay_components
+    from torchrl_mbmf.runs.storage import changed_files, reseal_files, verify_checkpoint
+
+    folder = replay_components(checkpoint).get("model_replay")
+    if folder is None:
+        return []
+    rows = (folder / "data").relative_to(checkpoint).as_posix() + "/"
+    changed = changed_files(checkpoint)
+    if not changed or not all(name.startswith(rows) for name in changed):
+        return []
+    reseal_files(checkpoint, changed)
+    verify_checkpoint(checkpoint)
+    return changed
 
 
 def _expand(folder: Path, checkpoint: Path) -> bool:
@@ -737,8 +781,14 @@ def ledger_table(
             commits = commits or {(folder / "git_commit.txt").read_text().strip()[:7]}
         wall = sum(float(e.get("wall_s", 0)) for e in mine if e["event"] in ("exit", "prior"))
         segments = len(starts) + sum(int(e.get("segments", 0)) for e in prior)
-        for lost in (e for e in mine if e["event"] == "lost"):
-            state += f" (lost at {int(lost['real_steps']):,} with its machine, restarted from 0)"
+        for i, event in enumerate(mine):
+            later = [e["event"] for e in mine[i + 1 :]]
+            if event["event"] == "lost" and "restored" not in later:
+                step = int(event["real_steps"])
+                state += f" (lost at {step:,} with its machine, restarted from 0)"
+            if event["event"] == "restored" and event.get("model_replay_rerun"):
+                step = int(event["checkpoint"].removeprefix("checkpoint-"))
+                state += f" (resumed at {step:,} with its model replay re-run on another CPU)"
         latest = latest_checkpoint(folder)
         lines.append(
             f"| {run.name} | {state} | {_last_step(folder):,} | {budget(run):,} | "
@@ -787,6 +837,12 @@ def main() -> None:
     )
     parser.add_argument("--ledger", type=Path, help="write the run table into this markdown file")
     parser.add_argument(
+        "--rerun-model-replay",
+        action="store_true",
+        help="on restore, accept a sac_mbpo model replay that re-running its rounds on this "
+        "machine does not give bit for bit (every other file must match; logged)",
+    )
+    parser.add_argument(
         "--no-fallback",
         action="store_true",
         help="when no run fits before --stop-at, stop instead of starting one that only a kept "
@@ -817,7 +873,7 @@ def main() -> None:
         print("\n".join(snapshot(root, queue, args.results)))
         return
     if args.results is not None:
-        restore(root, queue, args.results)
+        restore(root, queue, args.results, rerun_model_replay=args.rerun_model_replay)
     stop_at = parse_stop_at(args.stop_at, dt.datetime.now(dt.UTC)) if args.stop_at else None
     failed: set[str] = set()
 

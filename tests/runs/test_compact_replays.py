@@ -171,3 +171,43 @@ def test_a_wrapped_sac_replay_is_not_compacted(tmp_path):
             run / "checkpoints" / "checkpoint-000000000300", tmp_path / "c", env, seed=seed
         )
     assert not (tmp_path / "c").exists()
+
+
+def test_a_model_replay_rerun_differently_is_accepted_only_when_asked(tmp_path):
+    """Another CPU may round a few imagined values differently: the campaign's opt-in."""
+    _, fresh, _, compacted = _compacted(tmp_path, MBPO, 600)
+    queue_file = tmp_path / "queue.txt"
+    queue_file.write_text(f"{fresh.name} train method=sac_mbpo\n")
+    queue = campaign.read_queue(queue_file)
+    rows = replay_components(compacted)["model_replay"].relative_to(compacted) / "data"
+    record_file = compacted / "integrity.json"
+    record = json.loads(record_file.read_text())
+    saved = dict(record["files"])
+    # what the run's machine saved, as another CPU would not re-run it
+    changed = f"{rows.as_posix()}/action.memmap"
+    record["files"][changed] = {**saved[changed], "sha256": "0" * 64}
+    record_file.write_text(json.dumps(record))
+    strict = tmp_path / "strict"
+    assert campaign.restore(strict, queue, fresh.parent) == []
+    assert [e["event"] for e in campaign._events(strict)] == ["lost"]
+    accepting = tmp_path / "accepting"
+    assert campaign.restore(accepting, queue, fresh.parent, rerun_model_replay=True) == ["run"]
+    event = campaign._events(accepting)[-1]
+    assert event["event"] == "restored" and event["model_replay_rerun"] == [changed]
+    restored = accepting / "run" / "checkpoints" / compacted.name
+    verify_checkpoint(restored)
+    entries = json.loads((restored / "integrity.json").read_text())["files"]
+    assert {k: v for k, v in entries.items() if k != changed} == {
+        k: v for k, v in saved.items() if k != changed
+    }
+    table = campaign.ledger_table(
+        accepting, queue, fresh.parent, [*campaign._events(strict), event]
+    )
+    assert "re-run on another CPU" in table and "restarted from 0" not in table
+    # any other file that differs still loses the checkpoint
+    dataset = next(k for k in saved if "-dataset/" in k and k.endswith(".memmap"))
+    record["files"][dataset] = {**saved[dataset], "sha256": "0" * 64}
+    record_file.write_text(json.dumps(record))
+    other = tmp_path / "other"
+    assert campaign.restore(other, queue, fresh.parent, rerun_model_replay=True) == []
+    assert [e["event"] for e in campaign._events(other)] == ["lost"]

@@ -213,6 +213,8 @@ def test_snapshot_keeps_small_checkpoints_and_a_fresh_machine_restores_them(tmp_
     restored = fresh / "a" / "checkpoints" / "checkpoint-000000002000" / "state.bin"
     assert restored.read_bytes() == b"x" * 100
     assert campaign.restore(fresh, queue, results) == []  # never over an existing folder
+    # not past its committed checkpoint: the fresh machine's snapshot keeps the copy as it is
+    assert campaign.snapshot(fresh, queue, results) == []
     table = campaign.ledger_table(fresh, queue, results)
     rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines()[2:]}
     assert "| interrupted | 2,000 | 1,000,000 | 2000 |" in rows["a"]

@@ -45,8 +45,10 @@ __all__ = [
     "ReplayCheckpointAdapter",
     "SealedWriter",
     "TensorStateAdapter",
+    "changed_files",
     "latest_intact_checkpoint",
     "read_tensor_state",
+    "reseal_files",
     "verify_checkpoint",
     "write_integrity_record",
 ]
@@ -200,6 +202,101 @@ def verify_checkpoint(path: str | os.PathLike, *, compacted: Collection[str] = (
             )
         if _sha256(file) != entry.get("sha256"):
             raise CheckpointIntegrityError(f"{file} does not match its SHA-256 (content changed)")
+
+
+def _record(root: Path) -> tuple[Path, dict[str, Any]]:
+    record_file = root / INTEGRITY_FILE
+    try:
+        record = json.loads(record_file.read_text(encoding="utf-8"))
+        if record.get("format") != _INTEGRITY_FORMAT or not isinstance(record["files"], dict):
+            raise ValueError(f"format {record.get('format')!r}")
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as err:
+        raise CheckpointIntegrityError(f"{record_file} is missing or damaged: {err}") from err
+    return record_file, record
+
+
+def changed_files(path: str | os.PathLike) -> list[str]:
+    """Every file of a checkpoint that differs from its integrity record (none: it verifies).
+
+    Where :func:`verify_checkpoint` stops at the first damaged file, this lists them all:
+    listed files that are missing, of another size or content, and files the record does not
+    list, as paths relative to the checkpoint.
+
+    Args:
+        path: the checkpoint folder.
+
+    Raises:
+        CheckpointIntegrityError: if the record is missing or unreadable.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchrl_mbmf.runs.storage import changed_files, write_integrity_record
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     _ = (Path(d) / "a.txt").write_text("hi")
+        ...     _ = (Path(d) / "b.txt").write_text("yo")
+        ...     _ = write_integrity_record(d)
+        ...     _ = (Path(d) / "b.txt").write_text("changed")
+        ...     print(changed_files(d))
+        ['b.txt']
+    """
+    root = Path(path)
+    record_file, record = _record(root)
+    present = {p.relative_to(root).as_posix(): p for p in _files_below(root) if p != record_file}
+    changed = set(present) - set(record["files"])
+    for name, entry in record["files"].items():
+        file = present.get(name)
+        if (
+            file is None
+            or file.is_symlink()
+            or not isinstance(entry, dict)
+            or file.stat().st_size != entry.get("bytes")
+            or _sha256(file) != entry.get("sha256")
+        ):
+            changed.add(name)
+    return sorted(changed)
+
+
+def reseal_files(path: str | os.PathLike, names: Collection[str]) -> None:
+    """Writes the present size and SHA-256 of the named files into a checkpoint's record.
+
+    For a deliberate, recorded change of a few files (a model replay re-run on another CPU,
+    accepted by its caller); every other entry is kept, so :func:`verify_checkpoint` still
+    checks the rest as saved.
+
+    Args:
+        path: the checkpoint folder.
+        names: files relative to the checkpoint, each already listed in its record.
+
+    Raises:
+        CheckpointIntegrityError: if the record is unreadable, or a name is not listed in it,
+            is missing or is a symbolic link (nothing is written then).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchrl_mbmf.runs.storage import (
+        ...     reseal_files, verify_checkpoint, write_integrity_record)
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     _ = (Path(d) / "a.txt").write_text("hi")
+        ...     _ = write_integrity_record(d)
+        ...     _ = (Path(d) / "a.txt").write_text("changed")
+        ...     reseal_files(d, ["a.txt"])
+        ...     verify_checkpoint(d)
+    """
+    root = Path(path)
+    record_file, record = _record(root)
+    for name in names:
+        file = root / name
+        if name not in record["files"] or file.is_symlink() or not file.is_file():
+            raise CheckpointIntegrityError(
+                f"{file} cannot be resealed: it must be a plain file listed in {record_file}"
+            )
+        record["files"][name] = {"bytes": file.stat().st_size, "sha256": _sha256(file)}
+    with record_file.open("w", encoding="utf-8") as f:
+        json.dump(record, f, indent=1, sort_keys=True)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 class SealedWriter(Checkpoint):
