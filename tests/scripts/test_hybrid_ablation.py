@@ -8,31 +8,19 @@ import sys
 from pathlib import Path
 
 import pytest
+from run_folders import fake_run
 
 from torchrl_mbmf.analysis.stats import iqm
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _run(root: Path, name: str, seed: int, evals: dict[int, float], done: bool) -> None:
-    folder = root / name
-    (folder / "logs/scalars/eval").mkdir(parents=True)
-    (folder / "logs/scalars/train").mkdir(parents=True)
-    (folder / "config.yaml").write_text(f"method: sac_mbpo\nseed: {seed}\n")
-    rows = "".join(f"{step},{value}\n" for step, value in evals.items())
-    (folder / "logs/scalars/eval/return.csv").write_text(rows)
-    (folder / "logs/scalars/train/return_last10_mean.csv").write_text(rows)
-    if done:
-        summary = {"real_steps": max(evals), "seconds": 10.0, "time_breakdown": {"update_s": 8.0}}
-        (folder / "summary.json").write_text(json.dumps(summary))
-
-
 def test_table_takes_each_seeds_latest_value_and_leaves_out_seeds_short_of_the_step(tmp_path):
     root = tmp_path / "runs"
     name = "HalfCheetah-v5__hybrid_mbpo__H1-r0.05-utd5__5e4__seed{}"
-    _run(root, name.format(0), 0, {5_000: 0.0, 10_000: 1.0, 20_000: 5.0}, done=True)
-    _run(root, name.format(1), 1, {10_000: 2.0, 20_000: 7.0}, done=True)
-    _run(root, name.format(2), 2, {10_000: 4.0, 16_000: 3.0}, done=False)  # stopped at 16,000
+    fake_run(root, name.format(0), 0, {5_000: 0.0, 10_000: 1.0, 20_000: 5.0}, done=True)
+    fake_run(root, name.format(1), 1, {10_000: 2.0, 20_000: 7.0}, done=True)
+    fake_run(root, name.format(2), 2, {10_000: 4.0, 16_000: 3.0}, done=False)  # stopped at 16,000
     out = tmp_path / "table.json"
     cmd = [sys.executable, str(ROOT / "scripts/hybrid_ablation.py"), "--runs", str(root)]
     cmd += ["--steps", "15000", "20000", "--out", str(out)]

@@ -8,20 +8,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from run_folders import fake_run
 
 from torchrl_mbmf.analysis.stats import iqm, iqm_ratio_ci
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _run(root: Path, name: str, seed: int, evals: dict[int, float]) -> None:
-    folder = root / name
-    (folder / "logs/scalars/eval").mkdir(parents=True)
-    (folder / "logs/scalars/train").mkdir(parents=True)
-    (folder / "config.yaml").write_text(f"method: sac_mbpo\nseed: {seed}\n")
-    rows = "".join(f"{step},{value}\n" for step, value in evals.items())
-    (folder / "logs/scalars/eval/return.csv").write_text(rows)
-    (folder / "logs/scalars/train/return_last10_mean.csv").write_text(rows)
 
 
 def test_final_table_per_task_with_ratio_to_sb3_and_figures(tmp_path):
@@ -29,12 +20,12 @@ def test_final_table_per_task_with_ratio_to_sb3_and_figures(tmp_path):
     hybrid = "HalfCheetah-v5__hybrid_mbpo__H1-r0.05-utd5__seed{}"
     sb3 = "HalfCheetah-v5__sb3_sac__default__1e5__seed{}"
     for seed, (at_5e4, at_1e5) in enumerate([(3_000.0, 6_000.0), (2_500.0, 6_400.0)]):
-        _run(root, hybrid.format(seed), seed, {50_000: at_5e4, 100_000: at_1e5})
-    _run(root, hybrid.format(2), 2, {50_000: 4_000.0, 80_000: 5_000.0})  # stopped at 80,000
+        fake_run(root, hybrid.format(seed), seed, {50_000: at_5e4, 100_000: at_1e5})
+    fake_run(root, hybrid.format(2), 2, {50_000: 4_000.0, 80_000: 5_000.0})  # stopped at 80,000
     for seed, value in enumerate([5_000.0, 5_500.0, 4_500.0]):
-        _run(root, sb3.format(seed), seed, {50_000: value / 2, 100_000: value})
-    _run(root, "HalfCheetah-v5__hybrid_mbpo__H1-r0.05-utd5__5e4__seed0", 0, {50_000: 3_000.0})
-    _run(root, "Hopper-v5__sb3_sac__default__1e5__seed0", 0, {50_000: 900.0})
+        fake_run(root, sb3.format(seed), seed, {50_000: value / 2, 100_000: value})
+    fake_run(root, "HalfCheetah-v5__hybrid_mbpo__H1-r0.05-utd5__5e4__seed0", 0, {50_000: 3_000.0})
+    fake_run(root, "Hopper-v5__sb3_sac__default__1e5__seed0", 0, {50_000: 900.0})
     out = tmp_path / "final.json"
     cmd = [sys.executable, str(ROOT / "scripts/hybrid_final.py"), "--runs", str(root)]
     cmd += ["--out", str(out), "--figures", str(tmp_path)]
