@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -49,8 +50,8 @@ def _run(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     )
 
 
-def _kill_after_first_checkpoint(run_dir: Path, *overrides: str) -> None:
-    killed = subprocess.Popen(
+def _kill_when(run_dir: Path, ready: Callable[[], bool], *overrides: str) -> None:
+    proc = subprocess.Popen(
         [sys.executable, TRAIN, *overrides, f"run_dir={run_dir}"],
         cwd=run_dir.parent,
         stdout=subprocess.DEVNULL,
@@ -58,13 +59,10 @@ def _kill_after_first_checkpoint(run_dir: Path, *overrides: str) -> None:
         env=ENV,
     )
     deadline = time.time() + 300
-    checkpoints = run_dir / "checkpoints"
-    while time.time() < deadline and killed.poll() is None:
-        if checkpoints.exists() and any(checkpoints.glob("checkpoint-*")):
-            break
-        time.sleep(0.05)
-    killed.send_signal(signal.SIGKILL)
-    killed.wait()
+    while time.time() < deadline and proc.poll() is None and not ready():
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
     assert not (run_dir / "summary.json").exists(), "the run finished before it could be killed"
 
 
@@ -109,7 +107,7 @@ def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, method):
     proc = _run(straight, *cfg)
     assert proc.returncode == 0, proc.stderr[-3000:]
     run = tmp_path / "resumed"
-    _kill_after_first_checkpoint(run, *cfg)
+    _kill_when(run, lambda: any((run / "checkpoints").glob("checkpoint-*")), *cfg)
     done = _run(run, *cfg)
     assert done.returncode == 0, done.stderr[-3000:]
     resumed = json.loads((run / "summary.json").read_text())
@@ -173,22 +171,9 @@ def test_a_finished_run_continued_is_unfinished_until_its_new_summary(tmp_path):
     assert _run(run, *cfg).returncode == 0
     first = json.loads((run / "summary.json").read_text())
     raised = [*cfg, "total_steps=1600"]
-    proc = subprocess.Popen(
-        [sys.executable, TRAIN, *raised, f"run_dir={run}"],
-        cwd=run.parent,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env=ENV,
-    )
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None:
-        if (run / "resume_log.json").exists() and not (run / "summary.json").exists():
-            break
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    continuing = (run / "resume_log.json").exists
+    _kill_when(run, lambda: continuing() and not (run / "summary.json").exists(), *raised)
     # killed while continuing: no summary claims the run finished; the old one is in the log
-    assert not (run / "summary.json").exists()
     (entry,) = json.loads((run / "resume_log.json").read_text())
     assert entry["previous_summary"] == first
     proc = _run(run, *raised)
@@ -232,22 +217,6 @@ def _rows_after(run_dir: Path, step: int) -> bool:
     if not path.exists():
         return False
     return any(int(row.split(",")[0]) > step for row in path.read_text().split())
-
-
-def _kill_when(run_dir: Path, ready, *overrides: str) -> None:
-    proc = subprocess.Popen(
-        [sys.executable, TRAIN, *overrides, f"run_dir={run_dir}"],
-        cwd=run_dir.parent,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env=ENV,
-    )
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None and not ready():
-        time.sleep(0.01)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    assert not (run_dir / "summary.json").exists(), "the run finished before it could be killed"
 
 
 def _checkpoint(run_dir: Path, step: int) -> Path:
