@@ -80,7 +80,7 @@ def main() -> None:
         print(f"| {label} | {reached} | {values or 'n/a'} |")
     print(
         "\n| method (finished runs) | wall ms per real step, per seed | last process: resumed "
-        "from | its ms per real step: " + " | ".join(PARTS) + " |"
+        "from (its CPU) | its ms per real step: " + " | ".join(PARTS) + " |"
     )
     print("|---" * (len(PARTS) + 3) + "|")
     for label, rows in table.items():

@@ -203,7 +203,9 @@ def main() -> None:
             print(f"| {label} | {reached} | {per_step or 'n/a'} |")
         print(
             f"\n| {task}: method (finished runs) | wall ms per real step, per seed | last "
-            "process: resumed from | its ms per real step: " + " | ".join(TIME_PARTS) + " |"
+            "process: resumed from (its CPU) | its ms per real step: "
+            + " | ".join(TIME_PARTS)
+            + " |"
         )
         print("|---" * (len(TIME_PARTS) + 3) + "|")
         for label, rows in table.items():

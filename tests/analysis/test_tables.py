@@ -47,6 +47,7 @@ def test_compute_split_times_the_last_segment_and_the_whole_run(tmp_path):
     unfinished.mkdir()
     split = compute_split([resumed, Run(unfinished, {"method": "sac_mbpo", "seed": 1})])
     assert split["runs"] == 1 and split["segment_starts"] == [500]
+    assert split["segment_cpus"] == ["?"]  # no machine.json
     assert split["ms_per_real_step"] == pytest.approx([15.0])  # (5 s + 10 s) / 1,000 steps
     per_step = split["segment_ms_per_real_step"]
     assert list(per_step) == list(TIME_PARTS)

@@ -53,7 +53,9 @@ def compute_split(runs: Sequence[Run]) -> dict[str, object]:
     Returns:
         ``{"runs": 0}`` without a finished run, else ``runs``, ``real_steps`` (of the first),
         ``ms_per_real_step`` (per run), ``segment_ms_per_real_step`` (``{part: ms}`` over
-        :data:`TIME_PARTS`), ``segment_starts`` (per run) and ``commits``.
+        :data:`TIME_PARTS`), ``segment_starts`` and ``segment_cpus`` (per run: the real step the
+        last process resumed from, torch's CPU capability on its machine, ``"?"`` where
+        ``machine.json`` does not say) and ``commits``.
 
     Examples:
         >>> import tempfile, pathlib
@@ -79,6 +81,7 @@ def compute_split(runs: Sequence[Run]) -> dict[str, object]:
         "ms_per_real_step": [1e3 * (r.wall_seconds or 0.0) / r.last_step for r in done],
         "segment_ms_per_real_step": {p: float(np.mean(v)) for p, v in split.items()},
         "segment_starts": [r.resumed_from for r in done],
+        "segment_cpus": [str(r.machine.get("cpu_capability", "?")) for r in done],
         "commits": sorted({r.commit for r in done}),
     }
 
@@ -94,15 +97,19 @@ def compute_row(label: str, compute: dict[str, object]) -> str | None:
         >>> from torchrl_mbmf.analysis.tables import compute_row
         >>> split = {p: 0.0 for p in TIME_PARTS}
         >>> record = {"runs": 1, "real_steps": 1000, "ms_per_real_step": [4.0],
-        ...           "segment_starts": [0], "segment_ms_per_real_step": split}
+        ...           "segment_starts": [0], "segment_cpus": ["AVX2"],
+        ...           "segment_ms_per_real_step": split}
         >>> compute_row("sac", record)
-        '| sac (1,000 steps) | 4 | 0 | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 |'
+        '| sac (1,000 steps) | 4 | 0 (AVX2) | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 |'
         >>> compute_row("sac", {"runs": 0}) is None
         True
     """
     if not compute["runs"]:
         return None
     ms = ", ".join(f"{v:.0f}" for v in compute["ms_per_real_step"])
-    starts = ", ".join(f"{s:,}" for s in compute["segment_starts"])
+    cpus = compute.get("segment_cpus") or ["?"] * len(compute["segment_starts"])
+    starts = ", ".join(
+        f"{s:,} ({cpu})" for s, cpu in zip(compute["segment_starts"], cpus, strict=True)
+    )
     split = " | ".join(f"{compute['segment_ms_per_real_step'][p]:.1f}" for p in TIME_PARTS)
     return f"| {label} ({compute['real_steps']:,} steps) | {ms} | {starts} | {split} |"
