@@ -706,6 +706,9 @@ def merge_events(root: Path, history: Path) -> list[dict]:
     for event in events:  # the committed file names no path of this machine
         if "to" in event:
             event["to"] = Path(event["to"]).name
+        for key, value in event.items():
+            if isinstance(value, str):
+                event[key] = value.replace(str(root), ROOT_MARK)
     new = [json.dumps(event) for event in events if json.dumps(event) not in known]
     if new:
         history.parent.mkdir(parents=True, exist_ok=True)
@@ -788,7 +791,7 @@ def ledger_table(
                 state += f" (lost at {step:,} with its machine, restarted from 0)"
             if event["event"] == "restored" and event.get("model_replay_rerun"):
                 step = int(event["checkpoint"].removeprefix("checkpoint-"))
-                state += f" (resumed at {step:,} with its model replay re-run on another CPU)"
+                state += f" (restored at {step:,} with its model replay re-run on another CPU)"
         latest = latest_checkpoint(folder)
         lines.append(
             f"| {run.name} | {state} | {_last_step(folder):,} | {budget(run):,} | "

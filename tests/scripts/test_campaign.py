@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -352,6 +353,16 @@ def test_the_ledger_keeps_every_machines_events_and_each_runs_budget(tmp_path):
     events = campaign.merge_events(root, history)
     row = campaign.ledger_table(root, queue, None, events).splitlines()[4]
     assert "| c | queued (lost at 69,000 with its machine, restarted from 0) | 0 |" in row
+    # an event's text naming this machine's run root is committed with the root's mark instead
+    with (root / "campaign.log").open("a") as f:
+        why = f"{root}/.c.restoring/checkpoints/x does not match its SHA-256"
+        f.write(json.dumps({"time": "t2", "event": "lost", "run": "c", "why": why}) + "\n")
+    events = campaign.merge_events(root, history)
+    assert str(root) not in history.read_text()
+    assert (
+        events[-1]["why"]
+        == f"{campaign.ROOT_MARK}/.c.restoring/checkpoints/x does not match its SHA-256"
+    )
 
 
 def test_a_stop_time_just_passed_is_todays_and_one_long_past_is_tomorrows(tmp_path):
