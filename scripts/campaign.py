@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import fcntl
-import hashlib
 import json
 import os
 import shlex
@@ -433,11 +432,13 @@ def relocate_checkpoint(checkpoint: Path, old: str, new: str) -> None:
         old: the text to replace.
         new: its replacement.
     """
+    from torchrl_mbmf.runs.storage import reseal_files
+
     record_file = checkpoint / "integrity.json"
     if not record_file.exists():
         return
-    record = json.loads(record_file.read_text())
-    changed = False
+    listed = json.loads(record_file.read_text())["files"]
+    changed = []
     for path in sorted(checkpoint.rglob("*.json")):
         if path == record_file or path.parent.name == "replay":
             continue
@@ -446,12 +447,10 @@ def relocate_checkpoint(checkpoint: Path, old: str, new: str) -> None:
             continue
         path.write_text(text.replace(old, new))
         name = path.relative_to(checkpoint).as_posix()
-        if name in record["files"]:
-            data = path.read_bytes()
-            record["files"][name] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
-            changed = True
+        if name in listed:
+            changed.append(name)
     if changed:
-        record_file.write_text(json.dumps(record, indent=1, sort_keys=True))
+        reseal_files(checkpoint, changed)
 
 
 def _run_env(folder: Path) -> tuple[object, int]:
