@@ -54,3 +54,41 @@ def test_compute_split_times_the_last_segment_and_the_whole_run(tmp_path):
     assert per_step["update_s"] == pytest.approx(12.0)  # 6 s over the last 500 steps
     assert per_step["refit_s"] == pytest.approx(6.0) and per_step["rollout_s"] == 0.0
     assert compute_split([]) == {"runs": 0}
+
+
+def test_compute_split_at_an_earlier_budget_reads_a_continued_runs_earlier_summary(tmp_path):
+    # finished at 1,000 (its second process resumed at 500 on an AVX512 machine), then
+    # continued to 2,000 by a third process on an AVX2 machine, which is still running; the
+    # folder's machine.json is now the third process's, and the resume at 1,000 kept the one it
+    # replaced
+    first = {"real_steps": 1_000, "seconds": 10.0, "time_breakdown": {"update_s": 5.0}}
+    resumes = [
+        {"event": "resume", "real_steps": 500},
+        {"event": "resume", "real_steps": 1_000, "previous_summary": first,
+         "previous_commit": "abc1234", "previous_machine": {"cpu_capability": "AVX512"}},
+    ]  # fmt: skip
+    folder = tmp_path / "continued"
+    (folder / "logs/scalars/time").mkdir(parents=True)
+    (folder / "resume_log.json").write_text(json.dumps(resumes))
+    (folder / "machine.json").write_text(json.dumps({"cpu_capability": "AVX2"}))
+    (folder / "git_commit.txt").write_text("def5678\n")
+    rates = "500,100\n1000,50\n1500,25\n"  # the third process: 500 steps in 20 s
+    (folder / "logs/scalars/time/steps_per_s.csv").write_text(rates)
+    run = Run(folder, {"method": "sac_mbpo", "seed": 0})
+    assert run.summary_at(1_000) == first and run.summary_at(2_000) is None
+    assert run.finished_at() == [1_000]
+    assert [run.segment_start(s) for s in (400, 500, 501, 1_000, 1_500)] == [0, 0, 500, 500, 1000]
+    assert run.machine_at(1_000) == {"cpu_capability": "AVX512"}
+    assert run.machine_at(400) == {}  # the resume at 500 predates the record
+    assert run.machine_at(1_500) == {"cpu_capability": "AVX2"}
+    assert (run.commit_at(1_000), run.commit_at(1_500)) == ("abc1234", "def5678")
+    assert run.wall_seconds_to(1_000) == pytest.approx(5.0 + 10.0)
+    assert run.wall_seconds == pytest.approx(5.0 + 10.0 + 20.0)
+    split = compute_split([run], at_step=1_000)
+    assert split["runs"] == 1 and split["real_steps"] == 1_000
+    assert split["segment_starts"] == [500] and split["segment_cpus"] == ["AVX512"]
+    assert split["commits"] == ["abc1234"]
+    assert split["ms_per_real_step"] == pytest.approx([15.0])
+    assert split["segment_ms_per_real_step"]["update_s"] == pytest.approx(10.0)  # 5 s / 500
+    assert compute_split([run]) == {"runs": 0}  # unfinished now
+    assert compute_split([run], at_step=2_000) == {"runs": 0}

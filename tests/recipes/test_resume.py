@@ -163,6 +163,9 @@ def test_changed_training_settings_are_refused_and_safe_ones_recorded(tmp_path):
     # the finished run's summary it continued from is kept in the resume log (the first run
     # stopped at the batch boundary past 400)
     assert entries[-1]["previous_summary"]["real_steps"] == 480
+    # and the commit and machine of the process before (both processes ran here)
+    assert entries[-1]["previous_machine"] == json.loads((run / "machine.json").read_text())
+    assert entries[-1]["previous_commit"] == (run / "git_commit.txt").read_text().strip()
 
 
 def test_a_finished_run_continued_is_unfinished_until_its_new_summary(tmp_path):

@@ -125,22 +125,43 @@ class Run:
     def wall_seconds(self) -> float | None:
         """Wall time of the training loop over the work the run kept (``None`` if not logged).
 
+        :meth:`wall_seconds_to` the run's last logged step.
+        """
+        return self.wall_seconds_to(None)
+
+    def wall_seconds_to(self, step: int | None) -> float | None:
+        r"""Wall time of the training loop up to real step ``step`` (``None``: the whole run).
+
         A run resumed after an interruption ran in several processes (``resume_log.json``
         gives the real step each resumed from). Each process logs ``time/steps_per_s``, its
-        real steps per second since it started; its last row up to the step the next one
-        resumed from gives its time. Work done after an interruption's last checkpoint, which
-        was thrown away and redone, is not counted. Falls back to ``summary.json``'s
-        ``seconds`` where the rate was not logged.
+        real steps per second since it started; its last row up to ``step`` and to the step the
+        next one resumed from gives its time. Work done after an interruption's last checkpoint,
+        which was thrown away and redone, is not counted. Falls back to the summary's
+        ``seconds`` (:meth:`summary_at`) where the rate was not logged.
+
+        Args:
+            step: the real step to time up to (a logged row's step, such as a budget the run
+                finished at); ``None`` for all of it.
+
+        Examples:
+            >>> import tempfile, pathlib
+            >>> from torchrl_mbmf.analysis.runs import Run
+            >>> d = pathlib.Path(tempfile.mkdtemp())
+            >>> (d / "logs/scalars/time").mkdir(parents=True)
+            >>> _ = (d / "logs/scalars/time/steps_per_s.csv").write_text("1000,10\n2000,10\n")
+            >>> run = Run(d, {"method": "sac", "seed": 0})
+            >>> run.wall_seconds_to(1000), run.wall_seconds
+            (100.0, 200.0)
         """
         steps, rates = self.scalar("time/steps_per_s")
         if not steps.size:
-            return None if self.summary is None else self.summary.get("seconds")
-        events = RunFolder(self.path).read_resume_log()
-        starts = [0] + [int(e["real_steps"]) for e in events if e.get("event") == "resume"]
+            summary = self.summary if step is None else self.summary_at(step)
+            return None if summary is None else summary.get("seconds")
+        starts = self._resume_steps()
         total = 0.0
         for begin, end in zip(starts, [*starts[1:], None], strict=True):
-            inside = steps > begin if end is None else (steps > begin) & (steps <= end)
-            rows = np.nonzero(inside)[0]
+            last = min(c for c in (end, step, int(steps[-1])) if c is not None)
+            rows = np.nonzero((steps > begin) & (steps <= last))[0]
             if rows.size:
                 total += (steps[rows[-1]] - begin) / rates[rows[-1]]
         return float(total)
@@ -161,9 +182,86 @@ class Run:
             >>> Run(d, {"method": "sac", "seed": 0}).resumed_from
             20500
         """
+        return self._resume_steps()[-1]
+
+    def _resume_steps(self) -> list[int]:
+        """0, then the real step of each resume in ``resume_log.json``, in order."""
+        return [0] + [int(e["real_steps"]) for e in self._resume_events()]
+
+    def summary_at(self, step: int) -> dict[str, Any] | None:
+        """The summary the run wrote when it finished at real step ``step`` (``None``: it did not).
+
+        A finished run continued to a raised budget (``total_steps``) keeps its earlier summary
+        in ``resume_log.json`` (``previous_summary`` of the resume that continued it).
+
+        Args:
+            step: the real step, such as an earlier budget of the run.
+
+        Examples:
+            >>> import tempfile, pathlib
+            >>> from torchrl_mbmf.analysis.runs import Run
+            >>> d = pathlib.Path(tempfile.mkdtemp())
+            >>> _ = (d / "resume_log.json").write_text(
+            ...     '[{"event": "resume", "real_steps": 1000, '
+            ...     '"previous_summary": {"real_steps": 1000, "seconds": 4.0}}]')
+            >>> run = Run(d, {"method": "sac", "seed": 0})
+            >>> run.summary_at(1000)["seconds"], run.summary_at(2000)
+            (4.0, None)
+        """
+        summaries = [e.get("previous_summary") for e in RunFolder(self.path).read_resume_log()]
+        for summary in [*summaries, self.summary]:
+            if summary is not None and int(summary["real_steps"]) == step:
+                return summary
+        return None
+
+    def finished_at(self) -> list[int]:
+        """The real steps at which the run wrote a summary, earlier budgets included."""
         events = RunFolder(self.path).read_resume_log()
-        steps = [int(e["real_steps"]) for e in events if e.get("event") == "resume"]
-        return steps[-1] if steps else 0
+        summaries = [e.get("previous_summary") for e in events] + [self.summary]
+        return sorted({int(s["real_steps"]) for s in summaries if s is not None})
+
+    def segment_start(self, step: int) -> int:
+        """The real step the process that logged real step ``step`` resumed from (0: it started).
+
+        That process is the last to start before ``step`` (a resume cuts the rows past its
+        checkpoint). A summary's ``seconds`` and ``time_breakdown`` (:meth:`summary_at`) cover
+        it.
+
+        Args:
+            step: a real step the run logged.
+        """
+        return self._resume_steps()[self._segment(step)]
+
+    def machine_at(self, step: int) -> dict[str, Any]:
+        """``machine.json`` of the process that logged real step ``step`` (empty if not kept).
+
+        The folder's ``machine.json`` is the last process's; each resume keeps the one it
+        replaces in its ``resume_log.json`` entry (``previous_machine``; older entries lack it).
+
+        Args:
+            step: a real step the run logged.
+        """
+        after = self._resume_events()[self._segment(step) :]
+        return dict(after[0].get("previous_machine", {})) if after else self.machine
+
+    def commit_at(self, step: int) -> str:
+        """The git commit of the process that logged real step ``step`` (``"unknown"``).
+
+        Kept like :meth:`machine_at`'s record (``previous_commit``).
+
+        Args:
+            step: a real step the run logged.
+        """
+        after = self._resume_events()[self._segment(step) :]
+        return str(after[0].get("previous_commit", "unknown")) if after else self.commit
+
+    def _resume_events(self) -> list[dict[str, Any]]:
+        """The ``resume`` entries of ``resume_log.json``, in order."""
+        return [e for e in RunFolder(self.path).read_resume_log() if e.get("event") == "resume"]
+
+    def _segment(self, step: int) -> int:
+        """Index into :meth:`_resume_steps` of the process that logged real step ``step``."""
+        return max(i for i, s in enumerate(self._resume_steps()) if s < step or i == 0)
 
     @property
     def refit_seconds(self) -> float:

@@ -38,24 +38,27 @@ def iqm_cell(values: Sequence[float]) -> tuple[str, dict[str, object]]:
     return f"{float(iqm(values)):,.0f} [{ci.low:,.0f}, {ci.high:,.0f}] ({len(values)})", record
 
 
-def compute_split(runs: Sequence[Run]) -> dict[str, object]:
-    """Wall milliseconds per real step of the finished runs, and where their last process went.
+def compute_split(runs: Sequence[Run], at_step: int | None = None) -> dict[str, object]:
+    """Wall milliseconds per real step of finished runs, and where their last process went.
 
-    A resumed run's ``summary.json`` times its last process only (from
-    :attr:`~torchrl_mbmf.analysis.runs.Run.resumed_from`): the split is per real step of that
-    segment, averaged over the runs; the whole-run rate comes from
-    :attr:`~torchrl_mbmf.analysis.runs.Run.wall_seconds`.
+    A resumed run's summary times the process that wrote it only (the one that logged its last
+    step, :meth:`~torchrl_mbmf.analysis.runs.Run.segment_start`): the split is per real step
+    of that segment, averaged over the runs; the whole-run rate comes from
+    :meth:`~torchrl_mbmf.analysis.runs.Run.wall_seconds_to`.
 
     Args:
-        runs: runs of one configuration; those without ``summary.json`` (unfinished) are left
-            out.
+        runs: runs of one configuration; those without a summary at the budget are left out.
+        at_step: the budget: runs that finished at this real step, including runs since
+            continued to a raised budget (their earlier summary,
+            :meth:`~torchrl_mbmf.analysis.runs.Run.summary_at`); ``None``: the runs that are
+            finished now, at whatever step.
 
     Returns:
-        ``{"runs": 0}`` without a finished run, else ``runs``, ``real_steps`` (of the first),
+        ``{"runs": 0}`` without such a run, else ``runs``, ``real_steps`` (of the first),
         ``ms_per_real_step`` (per run), ``segment_ms_per_real_step`` (``{part: ms}`` over
         :data:`TIME_PARTS`), ``segment_starts`` and ``segment_cpus`` (per run: the real step the
-        last process resumed from, torch's CPU capability on its machine, ``"?"`` where
-        ``machine.json`` does not say) and ``commits``.
+        process that finished it resumed from, torch's CPU capability on its machine, ``"?"``
+        where no ``machine.json`` of that process was kept) and ``commits`` (those processes').
 
     Examples:
         >>> import tempfile, pathlib
@@ -66,23 +69,38 @@ def compute_split(runs: Sequence[Run]) -> dict[str, object]:
         >>> split = compute_split([Run(d, {"method": "sac", "seed": 0}, summary)])
         >>> split["ms_per_real_step"], split["segment_ms_per_real_step"]["update_s"]
         ([4.0], 3.0)
+        >>> compute_split([Run(d, {"method": "sac", "seed": 0}, summary)], at_step=2000)
+        {'runs': 0}
     """
-    done = [r for r in runs if r.summary is not None]
+    done = [
+        (run, summary)
+        for run in runs
+        if (summary := run.summary if at_step is None else run.summary_at(at_step)) is not None
+    ]
     if not done:
         return {"runs": 0}
     split: dict[str, list[float]] = {p: [] for p in TIME_PARTS}
-    for run in done:
-        steps = int(run.summary["real_steps"]) - run.resumed_from
+    ends = [int(summary["real_steps"]) for _, summary in done]
+    for (run, summary), end in zip(done, ends, strict=True):
+        steps = end - run.segment_start(end)
         for p in TIME_PARTS:
-            split[p].append(1e3 * run.summary.get("time_breakdown", {}).get(p, 0.0) / steps)
+            split[p].append(1e3 * summary.get("time_breakdown", {}).get(p, 0.0) / steps)
     return {
         "runs": len(done),
-        "real_steps": int(done[0].summary["real_steps"]),
-        "ms_per_real_step": [1e3 * (r.wall_seconds or 0.0) / r.last_step for r in done],
+        "real_steps": ends[0],
+        "ms_per_real_step": [
+            1e3 * (run.wall_seconds_to(end) or 0.0) / end
+            for (run, _), end in zip(done, ends, strict=True)
+        ],
         "segment_ms_per_real_step": {p: float(np.mean(v)) for p, v in split.items()},
-        "segment_starts": [r.resumed_from for r in done],
-        "segment_cpus": [str(r.machine.get("cpu_capability", "?")) for r in done],
-        "commits": sorted({r.commit for r in done}),
+        "segment_starts": [
+            run.segment_start(end) for (run, _), end in zip(done, ends, strict=True)
+        ],
+        "segment_cpus": [
+            str(run.machine_at(end).get("cpu_capability", "?"))
+            for (run, _), end in zip(done, ends, strict=True)
+        ],
+        "commits": sorted({run.commit_at(end) for (run, _), end in zip(done, ends, strict=True)}),
     }
 
 

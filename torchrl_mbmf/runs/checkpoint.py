@@ -40,7 +40,7 @@ from torchrl.record.loggers import CSVLogger, Logger
 from torchrl_mbmf.checks import ConfigError
 from torchrl_mbmf.data.transitions import TransitionDataset
 from torchrl_mbmf.runs.export import save_policy
-from torchrl_mbmf.runs.layout import CHECKPOINTS, SUMMARY
+from torchrl_mbmf.runs.layout import CHECKPOINTS, SUMMARY, RunFolder
 from torchrl_mbmf.runs.logs import append_resume_log, cut_csv_logs
 from torchrl_mbmf.runs.resume import (
     RESUME_SAFE_SETTINGS,
@@ -270,6 +270,9 @@ class RunCheckpoint:
         self.progress["fingerprint"] = expected
         cut = self._cut_logs(self.logger.experiment.scalars if self._csv_logs() else {})
         previous = self._raised_summary(config)
+        # git_commit.txt and machine.json are rewritten by this process next: the commit and
+        # machine of the process before it (the last to run in this folder) go into this entry
+        folder = RunFolder(Path(self.run_dir))
         append_resume_log(
             self.run_dir,
             {
@@ -280,6 +283,8 @@ class RunCheckpoint:
                     key: {"checkpoint": old, "now": new} for key, (old, new) in allowed.items()
                 },
                 "removed_rows": cut,
+                "previous_commit": folder.read_commit(),
+                "previous_machine": folder.read_machine(),
                 **({} if previous is None else {"previous_summary": previous}),
             },
         )
