@@ -32,7 +32,13 @@ import numpy as np
 from torchrl_mbmf.analysis.plots import plot_curves
 from torchrl_mbmf.analysis.runs import RETURN_CURVE, Run, aggregate_curve, final_values, load_runs
 from torchrl_mbmf.analysis.stats import iqm_ratio_ci
-from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_row, compute_split, iqm_cell
+from torchrl_mbmf.analysis.tables import (
+    TIME_PARTS,
+    compute_row,
+    compute_split,
+    iqm_cell,
+    process_rows,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 HYBRID = "hybrid_mbpo (final)"
@@ -139,6 +145,13 @@ def _figure(task: str, groups: dict[str, list[Run]], path: Path) -> list[str]:
     return list(curves)
 
 
+def _number(value: object, style: str = ".0f") -> str:
+    """A table cell: ``value`` formatted (``","``: thousands, no decimals), ``n/a`` if None."""
+    if value is None:
+        return "n/a"
+    return f"{float(value):,.0f}" if style == "," else f"{float(value):{style}}"
+
+
 def main() -> None:
     """Command line."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -174,7 +187,9 @@ def main() -> None:
                 }
         figure = args.figures / f"final_{task}.png"
         shown = _figure(task, groups, figure)
+        processes = {r.seed: process_rows(r) for r in groups.get(HYBRID, [])}
         result[task] = {
+            "processes": processes,
             "steps": steps,
             "methods": table,
             "ratios": ratios,
@@ -218,6 +233,26 @@ def main() -> None:
             for record in rows["compute"]:
                 if (row := compute_row(label, record)) is not None:
                     print(row)
+        if processes:
+            print(
+                f"\n| {task}: {HYBRID}, per process | real steps | CPU | wall ms per real step "
+                "| its ms per real step: learning | of it refits | rollouts | updates, "
+                "evaluations, checkpoints | refit µs per transition and epoch | transitions per "
+                "refit |"
+            )
+            print("|---" * 10 + "|")
+        for seed, rows in processes.items():
+            for row in rows:
+                cells = [
+                    f"seed {seed}",
+                    f"{row['start']:,}-{row['end']:,}",
+                    str(row["cpu"]),
+                    _number(row["ms_per_real_step"]),
+                    *(_number(row[f"{part}_ms"]) for part in ("learn", "refit", "rollout", "rest")),
+                    _number(row["refit_us_per_transition_epoch"]),
+                    _number(row["refit_transitions"], ","),
+                ]
+                print("| " + " | ".join(cells) + " |")
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"\nwrote {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
 

@@ -8,7 +8,7 @@ import pytest
 
 from torchrl_mbmf.analysis.runs import Run
 from torchrl_mbmf.analysis.stats import bootstrap_ci, iqm
-from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_split, iqm_cell
+from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_split, iqm_cell, process_rows
 
 
 def test_iqm_cell_text_and_record_agree_with_the_statistics():
@@ -92,3 +92,43 @@ def test_compute_split_at_an_earlier_budget_reads_a_continued_runs_earlier_summa
     assert split["segment_ms_per_real_step"]["update_s"] == pytest.approx(10.0)  # 5 s / 500
     assert compute_split([run]) == {"runs": 0}  # unfinished now
     assert compute_split([run], at_step=2_000) == {"runs": 0}
+
+
+def test_process_rows_split_each_kept_process_and_its_refit_cost(tmp_path):
+    # three processes: from 0 (killed past 1,500), from 1,000 (its newest checkpoint was
+    # damaged, so a third resumed from an older one at 500, cutting the rows past 500): the
+    # rows kept are 0-500 by the first process and 500-2,000 by the third
+    resumes = [
+        {"event": "resume", "real_steps": 1_000},
+        {"event": "resume", "real_steps": 500, "previous_machine": {"cpu_capability": "AVX2"}},
+    ]
+    folder = tmp_path / "run"
+    (folder / "logs/scalars/time").mkdir(parents=True)
+    (folder / "logs/scalars/model").mkdir(parents=True)
+    (folder / "resume_log.json").write_text(json.dumps(resumes))
+    (folder / "machine.json").write_text(json.dumps({"cpu_capability": "AVX512"}))
+    series = {
+        "time/steps_per_s": "500,50\n1000,25\n2000,25\n",  # 10 s, then 1,500 steps in 60 s
+        "time/update_s": "500,4\n1000,20\n2000,40\n",
+        "time/model_fit_s": "500,1\n1000,10\n2000,30\n",
+        "time/rollout_s": "500,0.5\n2000,1.5\n",
+        "model/epochs": "500,5\n1000,5\n2000,5\n",
+        "model/transitions": "500,400\n1000,800\n2000,1600\n",
+    }
+    for name, rows in series.items():
+        (folder / "logs/scalars" / f"{name}.csv").write_text(rows)
+    run = Run(folder, {"method": "sac_mbpo", "seed": 0}, {"real_steps": 2_000})
+    assert run.segments() == [(0, 500), (500, 2_000)]
+    assert run.wall_seconds == pytest.approx(10.0 + 60.0)
+    first, last = process_rows(run)
+    assert (first["start"], first["end"], first["cpu"]) == (0, 500, "?")  # record not kept
+    assert first["ms_per_real_step"] == pytest.approx(20.0)
+    assert first["learn_ms"] == pytest.approx(8.0) and first["refit_ms"] == pytest.approx(2.0)
+    assert first["rest_ms"] == pytest.approx(8.0 - 2.0 - 1.0)
+    assert first["refit_us_per_transition_epoch"] == pytest.approx(1e6 * 1 / (5 * 400))
+    assert (last["start"], last["end"], last["cpu"]) == (500, 2_000, "AVX512")
+    assert last["ms_per_real_step"] == pytest.approx(40.0)
+    assert last["learn_ms"] == pytest.approx(1e3 * 60 / 1_500)
+    per_epoch = [1e6 * 10 / (5 * 800), 1e6 * 30 / (5 * 1_600)]  # the median of its two refits
+    assert last["refit_us_per_transition_epoch"] == pytest.approx(sum(per_epoch) / 2)
+    assert last["refit_transitions"] == pytest.approx(1_200.0)

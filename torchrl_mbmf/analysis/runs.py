@@ -157,9 +157,8 @@ class Run:
         if not steps.size:
             summary = self.summary if step is None else self.summary_at(step)
             return None if summary is None else summary.get("seconds")
-        starts = self._resume_steps()
         total = 0.0
-        for begin, end in zip(starts, [*starts[1:], None], strict=True):
+        for begin, end in self._bounds():
             last = min(c for c in (end, step, int(steps[-1])) if c is not None)
             rows = np.nonzero((steps > begin) & (steps <= last))[0]
             if rows.size:
@@ -183,6 +182,28 @@ class Run:
             20500
         """
         return self._resume_steps()[-1]
+
+    def segments(self) -> list[tuple[int, int]]:
+        """``(start, end)`` real steps of each process whose logged rows the run kept, in order.
+
+        Each process logged the rows past its start up to its end: the step the next process
+        resumed from (a resume cuts the rows past its checkpoint), or the run's last step.
+
+        Examples:
+            >>> import tempfile, pathlib
+            >>> from torchrl_mbmf.analysis.runs import Run
+            >>> d = pathlib.Path(tempfile.mkdtemp())
+            >>> _ = (d / "resume_log.json").write_text('[{"event": "resume", "real_steps": 500}]')
+            >>> Run(d, {"method": "sac", "seed": 0}, {"real_steps": 1000}).segments()
+            [(0, 500), (500, 1000)]
+        """
+        return [(b, self.last_step if e is None else e) for b, e in self._bounds()]
+
+    def _bounds(self) -> list[tuple[int, int | None]]:
+        """:meth:`segments` with ``None`` for the last one's end (all its rows)."""
+        starts = self._resume_steps()
+        ends = [min(starts[i + 1 :], default=None) for i in range(len(starts))]
+        return [(b, e) for b, e in zip(starts, ends, strict=True) if e is None or e > b]
 
     def _resume_steps(self) -> list[int]:
         """0, then the real step of each resume in ``resume_log.json``, in order."""

@@ -131,3 +131,75 @@ def compute_row(label: str, compute: dict[str, object]) -> str | None:
     )
     split = " | ".join(f"{compute['segment_ms_per_real_step'][p]:.1f}" for p in TIME_PARTS)
     return f"| {label} ({compute['real_steps']:,} steps) | {ms} | {starts} | {split} |"
+
+
+def process_rows(run: Run) -> list[dict[str, object]]:
+    r"""Where each process of a run spent its time, per real step, and on which CPU.
+
+    One record per process whose rows the run kept
+    (:meth:`~torchrl_mbmf.analysis.runs.Run.segments`), from the logged series: the wall rate
+    (``time/steps_per_s``); the seconds from each batch's arrival to the end of its learning
+    (``time/update_s``: SAC updates, world-model refits, model rollouts, evaluations and
+    checkpoints), of which refits (``time/model_fit_s``) and rollouts (``time/rollout_s``);
+    and the refits' cost per training transition and epoch
+    (``model/transitions``, ``model/epochs``): a refit trains on every real transition so far,
+    so its cost per real step grows with the run while its cost per transition and epoch
+    measures the machine.
+
+    Args:
+        run: a run folder.
+
+    Returns:
+        Per process: ``start`` and ``end`` (real steps), ``cpu`` (torch's CPU capability,
+        ``"?"`` where its ``machine.json`` was not kept), ``ms_per_real_step`` (wall; ``None``
+        if not logged); per real step ``learn_ms`` and of it ``refit_ms``, ``rollout_ms`` and
+        ``rest_ms`` (updates, evaluations, checkpoints);
+        ``refit_us_per_transition_epoch`` and ``refit_transitions`` (medians over its refits;
+        ``None`` without a refit).
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from torchrl_mbmf.analysis.runs import Run
+        >>> from torchrl_mbmf.analysis.tables import process_rows
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> for name, rows in {"time/steps_per_s": "1000,20\n", "time/update_s": "1000,30\n",
+        ...                    "time/model_fit_s": "1000,8\n", "model/epochs": "1000,4\n",
+        ...                    "model/transitions": "1000,1000\n"}.items():
+        ...     (d / "logs/scalars" / name).parent.mkdir(parents=True, exist_ok=True)
+        ...     _ = (d / "logs/scalars" / f"{name}.csv").write_text(rows)
+        >>> (row,) = process_rows(Run(d, {"method": "sac_mbpo", "seed": 0}, {"real_steps": 1000}))
+        >>> row["ms_per_real_step"], row["rest_ms"], row["refit_us_per_transition_epoch"]
+        (50.0, 22.0, 2000.0)
+    """
+    rate_steps, rates = run.scalar("time/steps_per_s")
+    fit_steps, fits = run.scalar("time/model_fit_s")
+    epoch_steps, epochs = run.scalar("model/epochs")
+    data_steps, transitions = run.scalar("model/transitions")
+    out: list[dict[str, object]] = []
+    for start, end in run.segments():
+        record: dict[str, object] = {
+            "start": start,
+            "end": end,
+            "cpu": str(run.machine_at(end).get("cpu_capability", "?")),
+        }
+        rows = np.nonzero((rate_steps > start) & (rate_steps <= end))[0]
+        record["ms_per_real_step"] = 1e3 / float(rates[rows[-1]]) if rows.size else None
+        for part, name in (
+            ("learn", "update_s"),
+            ("refit", "model_fit_s"),
+            ("rollout", "rollout_s"),
+        ):
+            steps, seconds = run.scalar(f"time/{name}")
+            inside = (steps > start) & (steps <= end)
+            record[f"{part}_ms"] = 1e3 * float(seconds[inside].sum()) / (end - start)
+        record["rest_ms"] = record["learn_ms"] - record["refit_ms"] - record["rollout_ms"]
+        refits = (fit_steps > start) & (fit_steps <= end)
+        same = np.array_equal(fit_steps, epoch_steps) and np.array_equal(fit_steps, data_steps)
+        if refits.any() and same:
+            cost = fits[refits] / (epochs[refits] * transitions[refits])
+            record["refit_us_per_transition_epoch"] = 1e6 * float(np.median(cost))
+            record["refit_transitions"] = float(np.median(transitions[refits]))
+        else:
+            record["refit_us_per_transition_epoch"] = record["refit_transitions"] = None
+        out.append(record)
+    return out
