@@ -246,7 +246,7 @@ def main() -> None:
                 cells = [
                     f"seed {seed}",
                     f"{row['start']:,}-{row['end']:,}",
-                    str(row["cpu"]),
+                    "?" if row["cpu"] == "?" else f"{row['cpu_name']}, {row['cpu']}",
                     _number(row["ms_per_real_step"]),
                     *(_number(row[f"{part}_ms"]) for part in ("learn", "refit", "rollout", "rest")),
                     _number(row["refit_us_per_transition_epoch"]),

@@ -106,7 +106,8 @@ def test_process_rows_split_each_kept_process_and_its_refit_cost(tmp_path):
     (folder / "logs/scalars/time").mkdir(parents=True)
     (folder / "logs/scalars/model").mkdir(parents=True)
     (folder / "resume_log.json").write_text(json.dumps(resumes))
-    (folder / "machine.json").write_text(json.dumps({"cpu_capability": "AVX512"}))
+    machine = {"cpu": "Some Xeon", "cpu_capability": "AVX512"}
+    (folder / "machine.json").write_text(json.dumps(machine))
     series = {
         "time/steps_per_s": "500,50\n1000,25\n2000,25\n",  # 10 s, then 1,500 steps in 60 s
         "time/update_s": "500,4\n1000,20\n2000,40\n",
@@ -127,6 +128,7 @@ def test_process_rows_split_each_kept_process_and_its_refit_cost(tmp_path):
     assert first["rest_ms"] == pytest.approx(8.0 - 2.0 - 1.0)
     assert first["refit_us_per_transition_epoch"] == pytest.approx(1e6 * 1 / (5 * 400))
     assert (last["start"], last["end"], last["cpu"]) == (500, 2_000, "AVX512")
+    assert (first["cpu_name"], last["cpu_name"]) == ("?", "Some Xeon")
     assert last["ms_per_real_step"] == pytest.approx(40.0)
     assert last["learn_ms"] == pytest.approx(1e3 * 60 / 1_500)
     per_epoch = [1e6 * 10 / (5 * 800), 1e6 * 30 / (5 * 1_600)]  # the median of its two refits

@@ -150,10 +150,10 @@ def process_rows(run: Run) -> list[dict[str, object]]:
         run: a run folder.
 
     Returns:
-        Per process: ``start`` and ``end`` (real steps), ``cpu`` (torch's CPU capability,
-        ``"?"`` where its ``machine.json`` was not kept), ``ms_per_real_step`` (wall; ``None``
-        if not logged); per real step ``learn_ms`` and of it ``refit_ms``, ``rollout_ms`` and
-        ``rest_ms`` (updates, evaluations, checkpoints);
+        Per process: ``start`` and ``end`` (real steps), ``cpu`` and ``cpu_name`` (torch's CPU
+        capability and the processor's name, ``"?"`` where its ``machine.json`` was not kept),
+        ``ms_per_real_step`` (wall; ``None`` if not logged); per real step ``learn_ms`` and of
+        it ``refit_ms``, ``rollout_ms`` and ``rest_ms`` (updates, evaluations, checkpoints);
         ``refit_us_per_transition_epoch`` and ``refit_transitions`` (medians over its refits;
         ``None`` without a refit).
 
@@ -177,10 +177,12 @@ def process_rows(run: Run) -> list[dict[str, object]]:
     data_steps, transitions = run.scalar("model/transitions")
     out: list[dict[str, object]] = []
     for start, end in run.segments():
+        machine = run.machine_at(end)
         record: dict[str, object] = {
             "start": start,
             "end": end,
-            "cpu": str(run.machine_at(end).get("cpu_capability", "?")),
+            "cpu": str(machine.get("cpu_capability", "?")),
+            "cpu_name": str(machine.get("cpu", "?")),
         }
         rows = np.nonzero((rate_steps > start) & (rate_steps <= end))[0]
         record["ms_per_real_step"] = 1e3 / float(rates[rows[-1]]) if rows.size else None
