@@ -783,6 +783,7 @@ def ledger_table(
             commits = commits or {(folder / "git_commit.txt").read_text().strip()[:7]}
         wall = sum(float(e.get("wall_s", 0)) for e in mine if e["event"] in ("exit", "prior"))
         segments = len(starts) + sum(int(e.get("segments", 0)) for e in prior)
+        reruns: dict[int, int] = {}  # checkpoint step -> restores that re-ran its model replay
         for i, event in enumerate(mine):
             later = [e["event"] for e in mine[i + 1 :]]
             if event["event"] == "lost" and "restored" not in later:
@@ -790,7 +791,12 @@ def ledger_table(
                 state += f" (lost at {step:,} with its machine, restarted from 0)"
             if event["event"] == "restored" and event.get("model_replay_rerun"):
                 step = int(event["checkpoint"].removeprefix("checkpoint-"))
-                state += f" (restored at {step:,} with its model replay re-run on another CPU)"
+                reruns[step] = reruns.get(step, 0) + 1
+        if reruns:
+            at = " and ".join(
+                f"{s:,}" + (f" ({n} times)" if n > 1 else "") for s, n in reruns.items()
+            )
+            state += f" (restored at {at} with its model replay re-run on another CPU)"
         latest = latest_checkpoint(folder)
         lines.append(
             f"| {run.name} | {state} | {_last_step(folder):,} | {budget(run):,} | "

@@ -204,6 +204,9 @@ def test_a_model_replay_rerun_differently_is_accepted_only_when_asked(tmp_path):
         accepting, queue, fresh.parent, [*campaign._events(strict), event]
     )
     assert "re-run on another CPU" in table and "restarted from 0" not in table
+    # restored that way on two machines: said once, with the count
+    twice = campaign.ledger_table(accepting, queue, fresh.parent, [event, event])
+    assert twice.count("re-run on another CPU") == 1 and "(2 times)" in twice
     # any other file that differs still loses the checkpoint
     dataset = next(k for k in saved if "-dataset/" in k and k.endswith(".memmap"))
     record["files"][dataset] = {**saved[dataset], "sha256": "0" * 64}
