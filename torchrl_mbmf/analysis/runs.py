@@ -229,17 +229,17 @@ class Run:
             >>> run.summary_at(1000)["seconds"], run.summary_at(2000)
             (4.0, None)
         """
-        summaries = [e.get("previous_summary") for e in RunFolder(self.path).read_resume_log()]
-        for summary in [*summaries, self.summary]:
-            if summary is not None and int(summary["real_steps"]) == step:
-                return summary
-        return None
+        return next((s for s in self._summaries() if int(s["real_steps"]) == step), None)
 
     def finished_at(self) -> list[int]:
         """The real steps at which the run wrote a summary, earlier budgets included."""
+        return sorted({int(s["real_steps"]) for s in self._summaries()})
+
+    def _summaries(self) -> list[dict[str, Any]]:
+        """Every summary the run wrote: those kept in its resume log, then ``summary.json``."""
         events = RunFolder(self.path).read_resume_log()
         summaries = [e.get("previous_summary") for e in events] + [self.summary]
-        return sorted({int(s["real_steps"]) for s in summaries if s is not None})
+        return [s for s in summaries if s is not None]
 
     def segment_start(self, step: int) -> int:
         """The real step the process that logged real step ``step`` resumed from (0: it started).
