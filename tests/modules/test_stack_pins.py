@@ -16,6 +16,7 @@ import hashlib
 
 import pytest
 import torch
+from float_kernels import OTHER_KERNELS_REASON, recording_kernels, sha
 from tensordict import TensorDict
 from torchrl_mbmf.trainers.ensemble_fit import fit_ensemble
 
@@ -31,7 +32,6 @@ from torchrl_mbmf.modules import (
 from torchrl_mbmf.trainers import fit_dynamics
 
 # --------------------------------------------------------------------------- recorded values
-CANARY = "fcc542876eb9711111b89c40e385ba72657615d11730176cca998dada3611cb1"
 # {name: (sha-256 of all outputs | written keys, readable numbers)}
 PLANS: dict[str, tuple[str, list[float]]] = {
     "cem": (
@@ -148,14 +148,6 @@ FITS: dict[str, tuple[str, float]] = {
 CHEETAH_BOUNDS = {"action_low": -1.0, "action_high": 1.0}
 
 
-def sha(*tensors: torch.Tensor) -> str:
-    """SHA-256 of the tensors' bytes, in order."""
-    h = hashlib.sha256()
-    for t in tensors:
-        h.update(t.detach().contiguous().cpu().numpy().tobytes())
-    return h.hexdigest()
-
-
 def weights_sha(model: torch.nn.Module) -> str:
     """SHA-256 of a model's state dict (names and bytes)."""
     h = hashlib.sha256()
@@ -188,28 +180,15 @@ def transitions(n: int, seed: int, state_dim: int = 18, action_dim: int = 6) -> 
 
 
 #: Digests of the same computations on a machine whose elementwise float kernels differ from
-#: the recording machine's (torch's AVX512 kernels, where the canary above, a small matmul and
-#: Adam fit, agreed): MPPI's softmax weights and the Gaussian ensemble's log-variance path give
-#: other bits there, with every readable number within 1e-4. Either output pins the code.
+#: the recording machine's (torch's AVX512 kernels, where the canary of ``float_kernels.py``,
+#: a small matmul and Adam fit, agreed): MPPI's softmax weights and the Gaussian ensemble's
+#: log-variance path give other bits there, with every readable number within 1e-4. Either
+#: output pins the code.
 OTHER_KERNELS: dict[str, str] = {
     "mppi": "09faeffddfb4ba6fbe23359c652379f57e2a729236bc9bfabfb9c14a5651017d|('planner', "
     "'best_return'),('planner', 'mean_return'),action,action_log_prob,loc,scale",
     "fit_ensemble_gaussian": "c073ba105a06059f69f22e20bef7339aecd2e1c7c151ad21c84d7bcb8b21f70d",
 }
-
-
-def canary() -> str:
-    """Stock model outputs and a short stock fit: equal only on the same float kernels."""
-    torch.manual_seed(0)
-    model = DeltaDynamicsModel(18, 6, hidden_sizes=(32, 32))
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    x = torch.randn(64, 24)
-    for _ in range(3):
-        loss = model.net(x).pow(2).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return sha(model.net(x), *model.parameters())
 
 
 @pytest.fixture(scope="module")
@@ -336,8 +315,8 @@ def test_planner_variant_is_pinned(name, real, policy, single, ensemble):
     digest, numbers = plan_record(variants(name, real, policy, single, ensemble), real)
     want_digest, want_numbers = PLANS[name]
     torch.testing.assert_close(numbers, want_numbers, rtol=1e-4, atol=1e-4)
-    if canary() != CANARY:
-        pytest.skip("float kernels of this machine differ from those the hashes were recorded on")
+    if not recording_kernels():
+        pytest.skip(OTHER_KERNELS_REASON)
     assert digest in (want_digest, OTHER_KERNELS.get(name))
 
 
@@ -410,6 +389,6 @@ def test_fit_is_pinned(name):
     digest, last = fit_record(name)
     want_digest, want_last = FITS[name]
     assert last == pytest.approx(want_last, rel=1e-4, abs=1e-5)
-    if canary() != CANARY:
-        pytest.skip("float kernels of this machine differ from those the hashes were recorded on")
+    if not recording_kernels():
+        pytest.skip(OTHER_KERNELS_REASON)
     assert digest in (want_digest, OTHER_KERNELS.get(name))

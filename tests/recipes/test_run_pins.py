@@ -3,6 +3,15 @@
 The values were recorded from the code before the training-stack redesign (issue 14); the
 redesign keeps every run bit-identical. A change that moves one of these numbers needs a
 commit that says why.
+
+The recorded floats are those of the recording machine's float kernels. Where the canary of
+``tests/float_kernels.py`` says this machine has the same kernels, the weights' hash and every
+logged return are compared exactly. Elsewhere the same code gives other last bits, and training
+amplifies them: the Pendulum cases' returns stay within a relative 3e-4 of their pins on the
+Intel Xeon machines measured (the largest, ``sac`` at step 800: -813.799 against -814.018), so
+they are compared within ``PENDULUM_RTOL``, which still separates a behaviour change (the
+``sac`` and ``sac_l2`` pins, one loss apart, differ by 47% at that step); the HalfCheetah cases
+drift by 3.5-15% there (a chaotic system over 2,400 steps), so they are skipped, saying why.
 """
 
 from __future__ import annotations
@@ -14,6 +23,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from float_kernels import OTHER_KERNELS_REASON, recording_kernels
 from rl_helpers import TINY_HALF_CHEETAH, TINY_TRAIN
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -40,6 +50,8 @@ CASES = {
     "ppo_gaussian": ["method=ppo", *PENDULUM],
     "half_cheetah_ppo_mpc_gaussian": HALF_CHEETAH,
 }
+#: Relative tolerance of the Pendulum cases' returns on other float kernels (see the docstring).
+PENDULUM_RTOL = 5e-3
 # name: (params_sha256, [(step, episode return as logged)])
 PINS: dict[str, tuple[str, list[tuple[int, str]]]] = {
     "ppo": (
@@ -112,10 +124,37 @@ def run_pinned(run_dir: Path, name: str) -> tuple[str, list[tuple[int, str]]]:
 
 @pytest.mark.parametrize("name", list(CASES))
 def test_run_matches_its_pin(tmp_path, name):
+    exact = recording_kernels()
+    if not exact and name.startswith("half_cheetah"):
+        pytest.skip(f"{OTHER_KERNELS_REASON}; HalfCheetah's returns drift by several percent")
     digest, returns = run_pinned(tmp_path / name, name)
     expected_digest, expected_returns = PINS[name]
-    assert returns == expected_returns
-    assert digest == expected_digest
+    if exact:
+        assert returns == expected_returns
+        assert digest == expected_digest
+    else:
+        assert_returns_close(returns, expected_returns, rtol=PENDULUM_RTOL)
+
+
+def assert_returns_close(
+    returns: list[tuple[int, str]], expected: list[tuple[int, str]], rtol: float
+) -> None:
+    """Same episode ends at the same steps, each return within ``rtol`` of its pin."""
+    assert [step for step, _ in returns] == [step for step, _ in expected]
+    got = [float(value) for _, value in returns]
+    want = [float(value) for _, value in expected]
+    assert got == pytest.approx(want, rel=rtol), f"{got} != {want} within rel {rtol}"
+
+
+def test_assert_returns_close_separates_a_behaviour_change():
+    """The tolerance passes the measured cross-machine drift and fails the loss change."""
+    sac = PINS["sac"][1]
+    drifted = [(400, "-1604.9744873046875"), (600, "-1668.02734375"), (800, "-813.7992553710938")]
+    assert_returns_close(drifted, sac, rtol=PENDULUM_RTOL)
+    with pytest.raises(AssertionError):
+        assert_returns_close(PINS["sac_l2"][1], sac, rtol=PENDULUM_RTOL)
+    with pytest.raises(AssertionError):
+        assert_returns_close(sac[:2], sac, rtol=PENDULUM_RTOL)
 
 
 if __name__ == "__main__":  # prints the pins of the code as it stands (PYTHONPATH=tests)
