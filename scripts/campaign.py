@@ -85,6 +85,19 @@ AT_RISK_STEPS = {
     "sb3_sac": 200_000,
     "sac_mpc": 200_000,
 }
+#: Real steps between two checkpoints (``configs/train.yaml``'s ``checkpoint.every_steps``; a
+#: queue line's override wins). A run checkpoints at the first collection end at or past each
+#: multiple of it, and at its end.
+CHECKPOINT_EVERY = 20_480
+#: Milliseconds per real step, on the slowest machine measured, of the :data:`COMPACTED`
+#: methods whose way to their next checkpoint takes long enough to matter: ``sac_mbpo`` with
+#: the ``hybrid_mbpo`` preset ran at 53-61 ms on AMD EPYC machines with AVX-512, 118-125 ms on
+#: an Intel Xeon and 137-138 ms on an AMD EPYC with AVX2 (``results/hybrid/final.md``'s
+#: per-process table), so 150 with a margin; its restore from a committed copy (re-running the
+#: actions and model-replay rounds) takes 1-1.5 min more, :data:`RESTORE_MIN`. The others
+#: reach a checkpoint within minutes (SAC: about 27 min for 2e5 steps).
+CHECKPOINT_MS_PER_STEP = {"sac_mbpo": 150.0}
+RESTORE_MIN = 2.0
 #: Minutes a worker has on a fresh machine: a 180-minute session less the set-up (the virtual
 #: environment, about 3 min) and the closing snapshot and commit (about 8 min), with a margin. A
 #: run whose at-risk part is longer can finish only across sessions that keep one machine.
@@ -241,23 +254,32 @@ def _seconds_left(stop_at: dt.datetime | None) -> float:
     return (stop_at - dt.datetime.now(dt.UTC)).total_seconds()
 
 
-def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
+def at_risk_seconds(run: QueuedRun, done_steps: int = 0, checkpoint_step: int = 0) -> float:
     """Expected wall time until a run's checkpoints can be committed (a fresh machine resumes).
 
     For SAC-MPC and SB3 the rest of the run (SB3 runs restart, so ``done_steps`` does not
     count); for PPO nothing, nor for the :data:`COMPACTED` methods (MPC, PPO-MPC, SAC,
-    ``sac_mbpo``), whose checkpoints :func:`snapshot` commits compacted (the steps since the
-    last checkpoint, at most ``checkpoint.every_steps``, are redone).
+    ``sac_mbpo``), whose checkpoints :func:`snapshot` commits compacted, except the way from
+    their latest checkpoint to the next one (or to the run's end) where it is long enough to
+    matter (:data:`CHECKPOINT_MS_PER_STEP`: ``sac_mbpo``), with the restore before it: a run
+    stopped before it would redo those steps.
 
     Args:
         run: the queued run.
         done_steps: the real steps it has already run on this machine.
+        checkpoint_step: the real step of its latest checkpoint, here or in its committed copy
+            (0: none).
 
     Examples:
         >>> run = QueuedRun("r", "train", ("method=sac_mpc", "total_steps=200000"))
         >>> at_risk_seconds(run) / 60, at_risk_seconds(run, done_steps=150_000) / 60
         (100.0, 25.0)
-        >>> at_risk_seconds(QueuedRun("r", "train", ("method=sac_mbpo", "total_steps=100000")))
+        >>> hybrid = QueuedRun("r", "train", ("method=sac_mbpo", "total_steps=200000"))
+        >>> at_risk_seconds(hybrid) / 60  # 0 to 20,480 at 150 ms a step, and the restore
+        53.2
+        >>> at_risk_seconds(hybrid, checkpoint_step=100_000) / 60  # to the next at 102,400
+        8.0
+        >>> at_risk_seconds(QueuedRun("r", "train", ("method=sac", "total_steps=100000")))
         0.0
     """
     overrides = dict(o.split("=", 1) for o in run.overrides if "=" in o)
@@ -267,10 +289,37 @@ def at_risk_seconds(run: QueuedRun, done_steps: int = 0) -> float:
     if not run.resumable:
         return 60.0 * AT_RISK_MIN.get(key, 120) * scale
     if method in COMPACTED:
-        return 0.0
+        if method not in CHECKPOINT_MS_PER_STEP:
+            return 0.0
+        every = int(overrides.get("checkpoint.every_steps", CHECKPOINT_EVERY))
+        upcoming = min((checkpoint_step // every + 1) * every, budget(run))
+        steps = max(0, upcoming - checkpoint_step)
+        return 60.0 * RESTORE_MIN + CHECKPOINT_MS_PER_STEP[method] * steps / 1000.0
     minutes, risky_steps = AT_RISK_MIN.get(method, 180) * scale, budget(run)
     left = max(0.0, 1.0 - done_steps / risky_steps) if risky_steps else 0.0
     return 60.0 * minutes * left
+
+
+def latest_checkpoint_step(root: Path, run: QueuedRun, results: Path | None = None) -> int:
+    """The real step of a run's latest checkpoint on this machine or in its committed copy.
+
+    Args:
+        root: the campaign's run root.
+        run: the queued run.
+        results: where the committed copies are (``None``: only ``root`` counts).
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> root = pathlib.Path(tempfile.mkdtemp())
+        >>> (root / "r" / "checkpoints" / "checkpoint-000000163850").mkdir(parents=True)
+        >>> latest_checkpoint_step(root, QueuedRun("r", "train", ())), latest_checkpoint_step(
+        ...     root, QueuedRun("s", "train", ())
+        ... )
+        (163850, 0)
+    """
+    folders = [root / run.name, *([results / run.name] if results is not None else [])]
+    found = [latest_checkpoint(folder) for folder in folders]
+    return max((int(c.name.removeprefix("checkpoint-")) for c in found if c), default=0)
 
 
 def claim_next(
@@ -318,7 +367,13 @@ def claim_next(
             and not (root / r.name / "summary.json").exists()
         ]
         first = sorted(open_runs, key=lambda r: r not in here)  # stable: else queue order
-        fits = [r for r in first if at_risk_seconds(r, _last_step(root / r.name)) <= left]
+        risk = {
+            r.name: at_risk_seconds(
+                r, _last_step(root / r.name), latest_checkpoint_step(root, r, results)
+            )
+            for r in first
+        }
+        fits = [r for r in first if risk[r.name] <= left]
         fresh_fits = lambda r: at_risk_seconds(r) <= 60.0 * FRESH_SESSION_MIN  # noqa: E731
         kept_only = sorted(  # runs that only a kept machine would finish
             (r for r in first if r.resumable), key=lambda r: r not in here and fresh_fits(r)

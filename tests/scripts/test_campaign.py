@@ -376,3 +376,32 @@ def test_a_stop_time_just_passed_is_todays_and_one_long_past_is_tomorrows(tmp_pa
     stop = campaign.parse_stop_at("09:45", now)  # in the past for any real clock now
     assert stop < dt.datetime.now(dt.UTC)
     assert campaign.claim_next(tmp_path / "runs", queue, stop, fallback=False) is None
+
+
+def test_a_hybrid_starts_near_the_end_only_where_its_next_checkpoint_fits(tmp_path):
+    queue = _queue(
+        tmp_path,
+        "far train method=sac_mbpo total_steps=200000 seed=1\n"
+        "near train method=sac_mbpo total_steps=200000 seed=2\n",
+    )
+    root, results = tmp_path / "runs", tmp_path / "results"
+    # far's latest checkpoint here is at 163,850 (the next at 184,320); near's committed copy
+    # holds one at 100,000 (the next at 102,400)
+    (root / "far" / "checkpoints" / "checkpoint-000000163850").mkdir(parents=True)
+    (results / "near" / "checkpoints" / "checkpoint-000000100000").mkdir(parents=True)
+    assert campaign.latest_checkpoint_step(root, queue[0], results) == 163_850
+    assert campaign.latest_checkpoint_step(root, queue[1], results) == 100_000
+    assert campaign.latest_checkpoint_step(root, queue[1]) == 0
+    far = campaign.at_risk_seconds(queue[0], checkpoint_step=163_850) / 60
+    near = campaign.at_risk_seconds(queue[1], checkpoint_step=100_000) / 60
+    assert far == pytest.approx(2 + 20_470 * 0.150 / 60)
+    assert near == pytest.approx(2 + 2_400 * 0.150 / 60)
+    soon = dt.datetime.now(dt.UTC) + dt.timedelta(minutes=30)
+    assert campaign.claim_next(root, queue, soon, results=results, fallback=False).name == "near"
+    (root / ".claims" / "near").unlink()
+    assert campaign.claim_next(root, queue[:1], soon, results=results, fallback=False) is None
+    later = dt.datetime.now(dt.UTC) + dt.timedelta(hours=1)
+    assert campaign.claim_next(root, queue, later, results=results, fallback=False).name == "far"
+    # the run's own checkpoint period: a line's override counts
+    short = campaign.QueuedRun("s", "train", ("method=sac_mbpo", "checkpoint.every_steps=1000"))
+    assert campaign.at_risk_seconds(short, checkpoint_step=5_000) / 60 == pytest.approx(2.0 + 2.5)
