@@ -73,6 +73,7 @@ def make_test_sac_loss(
     hidden: int = 16,
     activation: type[nn.Module] = nn.Tanh,
     loss_function: str = "smooth_l1",
+    head: nn.Module | None = None,
 ) -> tuple[SACLoss, TensorDictBase]:
     """A small ``SACLoss`` and a random replay batch, for examples and tests.
 
@@ -84,6 +85,7 @@ def make_test_sac_loss(
         activation: hidden activation of both networks. Defaults to :class:`torch.nn.Tanh`
             (``MLP``'s default; the training networks use :class:`torch.nn.ReLU`).
         loss_function: ``SACLoss``'s Q distance. Defaults to ``"smooth_l1"`` (its default).
+        head: the actor's loc/scale head. Defaults to torchrl's ``NormalParamExtractor``.
 
     Returns:
         ``(loss, batch)``.
@@ -106,7 +108,9 @@ def make_test_sac_loss(
             num_cells=[hidden, hidden],
             activation_class=activation,
         ),
-        NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
+        NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4)
+        if head is None
+        else head,
     )
     actor = ProbabilisticActor(
         TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),

@@ -7,6 +7,7 @@ from torchrl.objectives import ClipPPOLoss, SACLoss
 
 from torchrl_mbmf.envs import make_half_cheetah_env
 from torchrl_mbmf.modules import make_ppo_actor_critic, make_sac_actor_critic
+from torchrl_mbmf.modules.log_std import LOG_STD_BOUNDS, ClampedLogStdExtractor
 
 
 @pytest.fixture(scope="module")
@@ -66,3 +67,33 @@ def test_hidden_sizes_are_checked(make):
     env = make_half_cheetah_env("default")
     with pytest.raises(ValueError, match=r"hidden_sizes must be a sequence of integers >= 1"):
         make(env, hidden_sizes=(0,))
+
+
+def test_sac_scale_parameterisations(env):
+    """``clamped_log_std`` maps a log-std through SB3's clamp; the default is torchrl's."""
+    torch.manual_seed(0)
+    default, _ = make_sac_actor_critic(env, hidden_sizes=(8,))
+    torch.manual_seed(0)
+    clamped, _ = make_sac_actor_critic(env, hidden_sizes=(8,), scale="clamped_log_std")
+    net_default, net_clamped = default.module[0].module, clamped.module[0].module
+    obs = torch.ones(17)
+    torch.testing.assert_close(net_default[0](obs), net_clamped[0](obs))  # same MLP
+    log_std = torch.tensor([-25.0, -3.0, 0.0, 1.5, 2.5, 9.0])
+    raw = torch.cat([torch.linspace(-1, 1, 6), log_std])  # loc | log-std (6 actions)
+    loc, scale = net_clamped[1](raw)
+    torch.testing.assert_close(loc, raw[:6])
+    torch.testing.assert_close(scale, log_std.clamp(-20.0, 2.0).exp())
+    _, softplus_scale = net_default[1](raw)
+    torch.testing.assert_close(softplus_scale[2], torch.tensor(1.0))  # both give 1 at 0
+    assert softplus_scale[5] > 8.0  # unbounded above, where the clamp stops at e^2
+    td = clamped(env.reset())
+    assert (td["scale"] <= torch.tensor(2.0).exp()).all() and td["action"].shape == (6,)
+    with pytest.raises(ValueError, match=r"scale='exp' is not a SAC actor scale"):
+        make_sac_actor_critic(env, scale="exp")
+
+
+def test_clamped_log_std_bounds_are_sb3s():
+    sb3 = pytest.importorskip("stable_baselines3.sac.policies")
+    assert LOG_STD_BOUNDS == (sb3.LOG_STD_MIN, sb3.LOG_STD_MAX)
+    with pytest.raises(ValueError, match=r"low < high, got \(2.0, -20.0\)"):
+        ClampedLogStdExtractor(2.0, -20.0)

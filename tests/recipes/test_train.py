@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from rl_helpers import TINY_HALF_CHEETAH, build_for_checks
 from rl_helpers import TINY_TRAIN as TINY
@@ -200,3 +201,18 @@ def test_improves_return_on_short_budget(tmp_path, method):
     first = float(rows[0].split(",")[1])
     final = json.loads((run / "summary.json").read_text())["final_eval_return"]
     assert final > first + 100, (first, final)
+
+
+def test_sac_with_sb3s_scale_trains_and_its_policy_loads_with_that_head(tmp_path):
+    """``sac.scale=clamped_log_std`` reaches the actor, and ``load_policy`` rebuilds it."""
+    from torchrl_mbmf.modules.log_std import ClampedLogStdExtractor
+    from torchrl_mbmf.runs.export import load_policy
+
+    run = tmp_path / "sac"
+    proc = _run(run, "method=sac", "total_steps=900", "sac.scale=clamped_log_std", *TINY)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    actor, env, info = load_policy(run)
+    assert info["config"].sac.scale == "clamped_log_std"
+    assert any(isinstance(m, ClampedLogStdExtractor) for m in actor.modules())
+    td = actor(env.reset())
+    assert (td["scale"] <= torch.tensor(2.0).exp()).all()

@@ -47,6 +47,7 @@ def _compose(*overrides: str):
             "sac.init_random_frames=5000 leaves no steps of total_steps=5000",
         ),
         (["method=sac", "sac.gamma=0"], "sac.gamma must be a number in (0, 1], got 0"),
+        (["method=sac", "sac.scale=exp"], "sac.scale='exp' is not supported; allowed: ['biased"),
         (["eval_episodes=-1"], "eval_episodes must be an integer >= 0, got -1"),
         (["method=sac", "sac.utd_ratio=-1"], "sac.utd_ratio must be a number > 0, got -1"),
         (

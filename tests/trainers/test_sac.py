@@ -7,6 +7,7 @@ import torch
 from rl_helpers import make_test_sac_loss
 from torchrl.objectives import SoftUpdate
 
+from torchrl_mbmf.modules.log_std import ClampedLogStdExtractor
 from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
 
 
@@ -117,6 +118,31 @@ def test_fused_update_gradients_match_sacloss(activation, seed, loss_function):
     torch.testing.assert_close(got["alpha"], loss.log_alpha.detach().exp())
     for (name, p), g in zip(loss.named_parameters(), stock_grads, strict=True):
         assert p.grad is not None, name
+        torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6, msg=name)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fused_update_with_the_clamped_log_std_head_matches_sacloss(seed):
+    """SB3's scale (exp of a log-std clamped to [-20, 2]) goes through the fused path unchanged:
+    same losses and gradients as SACLoss, with log-stds on both sides of the clamp."""
+    torch.manual_seed(seed)
+    loss, batch = make_test_sac_loss(
+        batch_size=64, obs_dim=5, action_dim=3, hidden=32, head=ClampedLogStdExtractor()
+    )
+    with torch.no_grad():  # push part of the log-std head above the upper bound
+        last = loss.actor_network_params["module", "0", "module", "0", "4", "bias"]
+        last[3:].fill_(2.5)
+    params = list(loss.parameters())
+    torch.manual_seed(100 + seed)
+    out = loss(batch.clone())
+    stock = [out["loss_actor"], out["loss_qvalue"], out["loss_alpha"]]
+    stock_grads = torch.autograd.grad(sum(stock), params)
+    fused = FusedSACUpdate(loss, torch.optim.SGD(params, lr=0.0), SoftUpdate(loss, tau=0.1))
+    torch.manual_seed(100 + seed)
+    got = fused.update(*_batch_args(batch))
+    for key, value in zip(("loss_actor", "loss_qvalue", "loss_alpha"), stock, strict=True):
+        torch.testing.assert_close(got[key], value.detach(), rtol=1e-5, atol=1e-6)
+    for (name, p), g in zip(loss.named_parameters(), stock_grads, strict=True):
         torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6, msg=name)
 
 

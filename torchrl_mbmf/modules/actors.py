@@ -8,7 +8,6 @@ from typing import Literal
 import torch
 from tensordict.nn import (
     AddStateIndependentNormalScale,
-    NormalParamExtractor,
     TensorDictModule,
 )
 from tensordict.utils import NestedKey
@@ -17,6 +16,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
 from torchrl_mbmf.keys import OBSERVATION_KEY
+from torchrl_mbmf.modules.log_std import make_sac_head
 from torchrl_mbmf.modules.mlp import check_hidden_sizes
 
 Distribution = Literal["tanh_normal", "normal"]
@@ -164,6 +164,7 @@ def make_sac_actor_critic(
     activation: type[nn.Module] = nn.ReLU,
     observation_key: NestedKey = OBSERVATION_KEY,
     action_key: NestedKey = "action",
+    scale: str = "biased_softplus",
 ) -> tuple[ProbabilisticActor, ValueOperator]:
     """Builds the SAC actor (TanhNormal, state-dependent scale) and one Q-network.
 
@@ -178,6 +179,10 @@ def make_sac_actor_critic(
         activation: hidden activation. Defaults to :class:`torch.nn.ReLU`.
         observation_key: input key. Defaults to ``"observation"``.
         action_key: action key. Defaults to ``"action"``.
+        scale: how the actor's network gives the scale
+            (:func:`~torchrl_mbmf.modules.log_std.make_sac_head`): ``"biased_softplus"``
+            (torchrl's default) or ``"clamped_log_std"`` (SAC's reference code,
+            Stable-Baselines3). Defaults to ``"biased_softplus"``.
 
     Returns:
         ``(actor, qvalue)``; the Q-network reads ``(observation, action)`` and writes
@@ -196,7 +201,7 @@ def make_sac_actor_critic(
     action_dim = action_spec.shape[-1]
     net = nn.Sequential(
         _mlp(obs_dim, 2 * action_dim, hidden_sizes, activation),
-        NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
+        make_sac_head(scale),
     )
     kwargs = _tanh_normal_kwargs(action_spec)
     actor = _actor(net, observation_key, action_key, action_spec, TanhNormal, kwargs)

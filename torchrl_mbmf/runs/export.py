@@ -25,6 +25,7 @@ from torchrl_mbmf.envs.factory import make_env
 from torchrl_mbmf.methods import PPO_METHODS
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
 from torchrl_mbmf.runs.layout import CONFIG, POLICY, POLICY_RECORD
+from torchrl_mbmf.runs.resume import IMPLIED_DEFAULTS
 
 __all__ = [
     "POLICY_FILE",
@@ -201,7 +202,11 @@ def load_policy(
             init_log_std=float(cfg.ppo.init_log_std),
         )
     else:
-        actor, _ = make_sac_actor_critic(env, hidden_sizes=tuple(cfg.sac.hidden_sizes))
+        actor, _ = make_sac_actor_critic(
+            env,
+            hidden_sizes=tuple(cfg.sac.hidden_sizes),
+            scale=str(cfg.sac.get("scale", IMPLIED_DEFAULTS["sac.scale"])),
+        )
     actor.load_state_dict(state)
     return actor, env, {"real_steps": steps, "config": cfg}
 

@@ -170,6 +170,7 @@ IMPLIED_DEFAULTS: dict[str, Any] = {
     "restart": False,
     "world_model.learn_termination": False,
     "sac.loss_function": "smooth_l1",
+    "sac.scale": "biased_softplus",
 }
 
 

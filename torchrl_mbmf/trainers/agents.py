@@ -21,6 +21,7 @@ from torchrl_mbmf.checks import Setting, check_arguments, choice, settings
 from torchrl_mbmf.data.mixed_replay import MixedReplaySampler
 from torchrl_mbmf.data.replay import ReplaySampler
 from torchrl_mbmf.modules.actors import make_ppo_actor_critic, make_sac_actor_critic
+from torchrl_mbmf.modules.log_std import SAC_SCALES
 from torchrl_mbmf.modules.planners import MinQValue
 from torchrl_mbmf.objectives.fused_ppo import FusedPPOUpdate, ppo_update
 from torchrl_mbmf.objectives.fused_sac import FusedSACUpdate, sac_update_step
@@ -261,6 +262,10 @@ class SACAgent:
         alpha_init: initial entropy coefficient.
         loss_function: ``SACLoss``'s Q-regression distance, ``"l2"`` (SAC's paper, SB3) or
             ``"smooth_l1"`` (torchrl's default). Defaults to ``"smooth_l1"``.
+        scale: the actor's scale parameterisation
+            (:func:`~torchrl_mbmf.modules.log_std.make_sac_head`): ``"biased_softplus"``
+            (torchrl's default) or ``"clamped_log_std"`` (SAC's reference code,
+            Stable-Baselines3). Defaults to ``"biased_softplus"``.
         refit_every_steps: ``sac_mpc``'s world-model refit period in real steps (read by the
             :class:`~torchrl_mbmf.trainers.schedule.PhaseSchedule`).
         update: ``"fused"`` or ``"stock"``. Defaults to ``"stock"``.
@@ -287,7 +292,11 @@ class SACAgent:
         positive=("utd_ratio", "lr", "alpha_init"),
         unit=("gamma", "tau"),
         sizes=("hidden_sizes",),
-    ) | {"update": choice(*SAC_UPDATES), "loss_function": choice(*SAC_Q_DISTANCES)}
+    ) | {
+        "update": choice(*SAC_UPDATES),
+        "loss_function": choice(*SAC_Q_DISTANCES),
+        "scale": choice(*SAC_SCALES),
+    }
 
     def __init__(
         self,
@@ -307,12 +316,15 @@ class SACAgent:
         refit_every_steps: int,
         update: str = "stock",
         loss_function: str = "smooth_l1",
+        scale: str = "biased_softplus",
     ) -> None:
         check_arguments(self.ARGUMENTS, locals())
         self.frames_per_batch, self.refit_every_steps = frames_per_batch, refit_every_steps
         self.init_random_frames, self.utd_ratio = int(init_random_frames), float(utd_ratio)
         self.device = device
-        self.actor, self.critic = make_sac_actor_critic(env, hidden_sizes=tuple(hidden_sizes))
+        self.actor, self.critic = make_sac_actor_critic(
+            env, hidden_sizes=tuple(hidden_sizes), scale=scale
+        )
         self.actor.to(device)
         self.critic.to(device)
         self.loss = SACLoss(

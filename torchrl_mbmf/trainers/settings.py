@@ -169,6 +169,7 @@ class SACSettings(GroupSettings):
         refit_every_steps: ``sac_mpc``'s refit period in real steps.
         update: the update path. Defaults to ``"stock"``.
         loss_function: the Q-regression distance. Defaults to ``"smooth_l1"``.
+        scale: the actor's scale parameterisation. Defaults to ``"biased_softplus"``.
         target: see :class:`GroupSettings`.
         extra: see :class:`GroupSettings`.
 
@@ -192,6 +193,7 @@ class SACSettings(GroupSettings):
     refit_every_steps: int
     update: str = "stock"
     loss_function: str = "smooth_l1"
+    scale: str = "biased_softplus"
 
 
 @dataclass(frozen=True, kw_only=True)
