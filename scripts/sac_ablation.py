@@ -8,7 +8,8 @@ reports, per variant and seed, the mean training return of the last 10 episodes 
 deterministic evaluation at or before each step (the thesis runs evaluated one episode every
 20,480 steps, the ablation ten every 10,000: their evaluation columns are not comparable, the
 training column is). Then the variants run under one protocol to 1e5 (ours and SB3's, five seeds
-each, ten evaluation episodes every 10,000 steps) side by side: the IQM over seeds of each
+each, ten evaluation episodes every 10,000 steps; then ours with SB3's actor scale,
+``sac_scale_queue.txt``) side by side: the IQM over seeds of each
 measure with its 95% bootstrap interval. Writes ``results/hybrid/sac_ablation.json``.
 """
 
@@ -34,6 +35,9 @@ VARIANTS = {
     "SB3 SAC (squared error, 1 per step)": r"__sb3_sac__default__seed\d$",
     "ours, new defaults (l2, 50 per 50), runs to 1e5": r"__sac__l2__fpb50__1e5__seed\d$",
     "SB3 SAC, runs to 1e5 (10 evaluation episodes)": r"__sb3_sac__default__1e5__seed\d$",
+    "ours, SB3's clamped log-std scale (sac.scale=clamped_log_std), runs to 1e5": (
+        r"__sac__l2__fpb50__clampedlogstd__1e5__seed\d$"
+    ),
 }
 
 
