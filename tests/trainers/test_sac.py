@@ -87,6 +87,25 @@ def _batch_args(batch):
     )
 
 
+def assert_fused_update_matches_sacloss(loss, batch, seed: int) -> None:
+    """One fused update (lr=0) gives SACLoss' losses, temperature and gradients, same draws."""
+    params = list(loss.parameters())
+    torch.manual_seed(seed)
+    out = loss(batch.clone())
+    stock = [out["loss_actor"], out["loss_qvalue"], out["loss_alpha"]]
+    stock_grads = torch.autograd.grad(sum(stock), params)
+    # lr=0: the step leaves the parameters as they are and their gradients in place
+    fused = FusedSACUpdate(loss, torch.optim.SGD(params, lr=0.0), SoftUpdate(loss, tau=0.1))
+    torch.manual_seed(seed)
+    got = fused.update(*_batch_args(batch))
+    for key, value in zip(("loss_actor", "loss_qvalue", "loss_alpha"), stock, strict=True):
+        torch.testing.assert_close(got[key], value.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got["alpha"], loss.log_alpha.detach().exp())
+    for (name, p), g in zip(loss.named_parameters(), stock_grads, strict=True):
+        assert p.grad is not None, name
+        torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6, msg=name)
+
+
 @pytest.mark.parametrize("loss_function", ["smooth_l1", "l2", "l1"])
 @pytest.mark.parametrize("activation", [torch.nn.ReLU, torch.nn.Tanh, torch.nn.ELU])
 @pytest.mark.parametrize("seed", [0, 1])
@@ -104,21 +123,7 @@ def test_fused_update_gradients_match_sacloss(activation, seed, loss_function):
     batch["next", "reward"] *= 3.0  # TD errors on both sides of smooth_l1's kink
     with torch.no_grad():
         loss.log_alpha.fill_(-0.7)
-    params = list(loss.parameters())
-    torch.manual_seed(100 + seed)
-    out = loss(batch.clone())
-    stock = [out["loss_actor"], out["loss_qvalue"], out["loss_alpha"]]
-    stock_grads = torch.autograd.grad(sum(stock), params)
-    # lr=0: the step leaves the parameters as they are and their gradients in place
-    fused = FusedSACUpdate(loss, torch.optim.SGD(params, lr=0.0), SoftUpdate(loss, tau=0.1))
-    torch.manual_seed(100 + seed)
-    got = fused.update(*_batch_args(batch))
-    for key, value in zip(("loss_actor", "loss_qvalue", "loss_alpha"), stock, strict=True):
-        torch.testing.assert_close(got[key], value.detach(), rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(got["alpha"], loss.log_alpha.detach().exp())
-    for (name, p), g in zip(loss.named_parameters(), stock_grads, strict=True):
-        assert p.grad is not None, name
-        torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6, msg=name)
+    assert_fused_update_matches_sacloss(loss, batch, seed=100 + seed)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -132,18 +137,7 @@ def test_fused_update_with_the_clamped_log_std_head_matches_sacloss(seed):
     with torch.no_grad():  # push part of the log-std head above the upper bound
         last = loss.actor_network_params["module", "0", "module", "0", "4", "bias"]
         last[3:].fill_(2.5)
-    params = list(loss.parameters())
-    torch.manual_seed(100 + seed)
-    out = loss(batch.clone())
-    stock = [out["loss_actor"], out["loss_qvalue"], out["loss_alpha"]]
-    stock_grads = torch.autograd.grad(sum(stock), params)
-    fused = FusedSACUpdate(loss, torch.optim.SGD(params, lr=0.0), SoftUpdate(loss, tau=0.1))
-    torch.manual_seed(100 + seed)
-    got = fused.update(*_batch_args(batch))
-    for key, value in zip(("loss_actor", "loss_qvalue", "loss_alpha"), stock, strict=True):
-        torch.testing.assert_close(got[key], value.detach(), rtol=1e-5, atol=1e-6)
-    for (name, p), g in zip(loss.named_parameters(), stock_grads, strict=True):
-        torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6, msg=name)
+    assert_fused_update_matches_sacloss(loss, batch, seed=100 + seed)
 
 
 def test_fused_update_consumes_the_stock_random_stream():
