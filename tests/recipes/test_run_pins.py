@@ -38,14 +38,19 @@ TANH = "ppo.distribution=tanh_normal"
 # The SAC runs were pinned when smooth_l1 was SAC's Q distance; they keep it explicitly, and the
 # *_l2 cases pin the default since (the squared error, recorded at that change).
 SMOOTH_L1 = "sac.loss_function=smooth_l1"
+# The SAC runs were pinned when torchrl's biased softplus was the actor's scale; they keep it
+# explicitly, and the *_clamped cases pin the default since (SB3's clamped log-std).
+SOFTPLUS = "sac.scale=biased_softplus"
 CASES = {
     "ppo": ["method=ppo", TANH, *PENDULUM],
     "mpc": ["method=mpc", TANH, *PENDULUM],
     "ppo_mpc": ["method=ppo_mpc", TANH, *PENDULUM],
-    "sac": ["method=sac", SMOOTH_L1, *PENDULUM],
-    "sac_mpc": ["method=sac_mpc", SMOOTH_L1, *PENDULUM],
-    "sac_l2": ["method=sac", *PENDULUM],
-    "sac_mpc_l2": ["method=sac_mpc", *PENDULUM],
+    "sac": ["method=sac", SMOOTH_L1, SOFTPLUS, *PENDULUM],
+    "sac_mpc": ["method=sac_mpc", SMOOTH_L1, SOFTPLUS, *PENDULUM],
+    "sac_l2": ["method=sac", SOFTPLUS, *PENDULUM],
+    "sac_mpc_l2": ["method=sac_mpc", SOFTPLUS, *PENDULUM],
+    "sac_clamped": ["method=sac", *PENDULUM],
+    "sac_mpc_clamped": ["method=sac_mpc", *PENDULUM],
     "half_cheetah_ppo_mpc": [TANH, *HALF_CHEETAH],
     "ppo_gaussian": ["method=ppo", *PENDULUM],
     "half_cheetah_ppo_mpc_gaussian": HALF_CHEETAH,
@@ -84,6 +89,15 @@ PINS: dict[str, tuple[str, list[tuple[int, str]]]] = {
     "sac_mpc_l2": (
         "fce6b31ae556b0974d968aca1a608a01450336640091408d3deebedb1fe78211",
         [(300, "-1500.4385986328125"), (600, "-1763.1094970703125"), (800, "-1022.5355834960938")],
+    ),
+    # the default actor scale since 2026-12-06 (SB3's clamped log-std; recorded at that change)
+    "sac_clamped": (
+        "d3fec05dd150a86c6d85717a85c2a0572fd4882bbf16a0484250a4f18066afbe",
+        [(400, "-1609.0498046875"), (600, "-1672.6190185546875"), (800, "-942.5475463867188")],
+    ),
+    "sac_mpc_clamped": (
+        "6797d686a778eee20256704e06e509bb880c73a14738aebd7da3a9219ec3bbb2",
+        [(300, "-1500.4385986328125"), (600, "-1767.919677734375"), (800, "-1024.07470703125")],
     ),
     "half_cheetah_ppo_mpc": (
         "97625109aa0fb5ae78093e7402b232de99bb5ede205c0f4e99f749543d167da1",
