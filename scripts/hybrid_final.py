@@ -47,6 +47,10 @@ METHODS = {
     "HalfCheetah-v5": {
         "SAC (ours), 1e5 runs": r"^HalfCheetah-v5__sac__l2__fpb50__1e5__seed\d$",
         "SAC (ours), 2e5 runs": r"^HalfCheetah-v5__sac__l2__fpb50__2e5__seed\d$",
+        # the "SAC (ours)" runs above have torchrl's softplus scale, the default until 2026-12-06
+        "SAC (ours, SB3's clamped log-std scale: the default since), 1e5 runs": (
+            r"^HalfCheetah-v5__sac__l2__fpb50__clampedlogstd__1e5__seed\d$"
+        ),
         "SB3 SAC, 1e5 runs": r"^HalfCheetah-v5__sb3_sac__default__1e5__seed\d$",
         "SB3 SAC, 2e5 runs": r"^HalfCheetah-v5__sb3_sac__default__2e5__seed\d$",
         "(a) LOOP-style acting, ablation": r"^HalfCheetah-v5__hybrid_loop__.*__5e4__seed\d$",
