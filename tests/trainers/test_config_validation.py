@@ -138,6 +138,7 @@ def test_a_run_folder_config_from_before_targets_validates_and_resumes(tmp_path)
     command = ["method=sac_mpc", "planner.horizon=10", "reward=head_pen", "seed=2"]
     # the campaign's SAC settings, the defaults before the SAC ablation changed them
     command += ["sac.frames_per_batch=1000", "sac.loss_function=smooth_l1"]
+    command += ["sac.scale=biased_softplus"]  # and before SB3's scale became the default
     now = _compose(*command, "budget=thesis", "threads=1", "progress=false")
     validate_train_config(old)
     assert resume_changes(flatten_config(old), flatten_config(now)) == ({}, {})
