@@ -3,11 +3,12 @@
 Two parameterisations are offered (``sac.scale`` in the config):
 
 - ``"biased_softplus"``: torchrl's default :class:`~tensordict.nn.NormalParamExtractor`,
-  ``scale = softplus(x + b)`` with ``b`` such that ``x = 0`` gives 1, floored at 1e-4; this
-  package's default since its first SAC.
+  ``scale = softplus(x + b)`` with ``b`` such that ``x = 0`` gives 1, floored at 1e-4; the
+  builders' default, and the recipes' until 2026-12-06.
 - ``"clamped_log_std"``: the second half is a log-std, clamped to ``[-20, 2]`` and exponentiated,
   as in SAC's reference code and Stable-Baselines3 (``LOG_STD_MIN``/``LOG_STD_MAX``): the scale
-  is bounded above by ``e^2`` (about 7.4) where the softplus is not.
+  is bounded above by ``e^2`` (about 7.4) where the softplus is not; the recipes' default since
+  2026-12-06 (``configs/algo/sac.yaml``).
 """
 
 from __future__ import annotations
