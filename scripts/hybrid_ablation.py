@@ -28,11 +28,13 @@ from torchrl_mbmf.analysis.tables import TIME_PARTS, compute_row, compute_split,
 ROOT = Path(__file__).resolve().parents[1]
 #: ``<label>: run-name pattern`` (the seed is the name's last part).
 METHODS = {
-    "SAC (ours: l2, 50 updates per 50 steps)": r"__sac__l2__fpb50__1e5__seed\d$",
-    "SB3 SAC": r"__sb3_sac__default__1e5__seed\d$",
-    "(a) LOOP-style acting (hybrid_loop)": r"__hybrid_loop__.*__5e4__seed\d$",
-    "(b) MBPO-style learning (hybrid_mbpo)": r"__hybrid_mbpo__.*-utd5__5e4__seed\d$",
-    "(b2) MBPO-style, 10 updates per real step": r"__hybrid_mbpo__.*-utd10__5e4__seed\d$",
+    "SAC (ours: l2, 50 updates per 50 steps)": r"^HalfCheetah-v5__sac__l2__fpb50__1e5__seed\d$",
+    "SB3 SAC": r"^HalfCheetah-v5__sb3_sac__default__1e5__seed\d$",
+    "(a) LOOP-style acting (hybrid_loop)": r"^HalfCheetah-v5__hybrid_loop__.*__5e4__seed\d$",
+    "(b) MBPO-style learning (hybrid_mbpo)": r"^HalfCheetah-v5__hybrid_mbpo__.*-utd5__5e4__seed\d$",
+    "(b2) MBPO-style, 10 updates per real step": (
+        r"^HalfCheetah-v5__hybrid_mbpo__.*-utd10__5e4__seed\d$"
+    ),
 }
 MEASURES = {"eval": "eval/return", "train_last10": RETURN_CURVE}
 PARTS = TIME_PARTS

@@ -28,17 +28,21 @@ from torchrl_mbmf.analysis.stats import bootstrap_ci, iqm
 ROOT = Path(__file__).resolve().parents[1]
 #: ``<label>: run-name pattern`` (the seed is the name's last part).
 VARIANTS = {
-    "ours: smooth_l1, 1000 updates per 1000 steps (the first defaults)": r"__sac__default__h10__seed\d$",
-    "ours: l2, 1000 per 1000": r"__sac__l2__fpb1000__seed\d$",
-    "ours: l2, 50 per 50": r"__sac__l2__fpb50__seed\d$",
-    "ours: smooth_l1, 50 per 50": r"__sac__smoothl1__fpb50__seed\d$",
-    "SB3 SAC (squared error, 1 per step)": r"__sb3_sac__default__seed\d$",
-    "ours, l2, 50 per 50, torchrl's softplus scale, runs to 1e5": (
-        r"__sac__l2__fpb50__1e5__seed\d$"
+    "ours: smooth_l1, 1000 updates per 1000 steps (the first defaults)": (
+        r"^HalfCheetah-v5__sac__default__h10__seed\d$"
     ),
-    "SB3 SAC, runs to 1e5 (10 evaluation episodes)": r"__sb3_sac__default__1e5__seed\d$",
+    "ours: l2, 1000 per 1000": r"^HalfCheetah-v5__sac__l2__fpb1000__seed\d$",
+    "ours: l2, 50 per 50": r"^HalfCheetah-v5__sac__l2__fpb50__seed\d$",
+    "ours: smooth_l1, 50 per 50": r"^HalfCheetah-v5__sac__smoothl1__fpb50__seed\d$",
+    "SB3 SAC (squared error, 1 per step)": r"^HalfCheetah-v5__sb3_sac__default__seed\d$",
+    "ours, l2, 50 per 50, torchrl's softplus scale, runs to 1e5": (
+        r"^HalfCheetah-v5__sac__l2__fpb50__1e5__seed\d$"
+    ),
+    "SB3 SAC, runs to 1e5 (10 evaluation episodes)": (
+        r"^HalfCheetah-v5__sb3_sac__default__1e5__seed\d$"
+    ),
     "ours, SB3's clamped log-std scale (the default since), runs to 1e5": (
-        r"__sac__l2__fpb50__clampedlogstd__1e5__seed\d$"
+        r"^HalfCheetah-v5__sac__l2__fpb50__clampedlogstd__1e5__seed\d$"
     ),
 }
 
