@@ -42,13 +42,14 @@ from torchrl_mbmf.analysis.tables import (
 
 ROOT = Path(__file__).resolve().parents[1]
 HYBRID = "hybrid_mbpo (final)"
+SAC_SOFTPLUS = "SAC (ours, softplus scale)"
 #: ``{task: {label: run-name pattern}}`` (the seed is the name's last part); the rows in order
 METHODS = {
     "HalfCheetah-v5": {
-        "SAC (ours), 1e5 runs": r"^HalfCheetah-v5__sac__l2__fpb50__1e5__seed\d$",
-        "SAC (ours), 2e5 runs": r"^HalfCheetah-v5__sac__l2__fpb50__2e5__seed\d$",
-        # the "SAC (ours)" runs above have torchrl's softplus scale, the default until 2026-12-06
-        "SAC (ours, SB3's clamped log-std scale: the default since), 1e5 runs": (
+        # torchrl's softplus actor scale (the default until 2026-12-06), then SB3's (the default)
+        f"{SAC_SOFTPLUS}, 1e5 runs": r"^HalfCheetah-v5__sac__l2__fpb50__1e5__seed\d$",
+        f"{SAC_SOFTPLUS}, 2e5 runs": r"^HalfCheetah-v5__sac__l2__fpb50__2e5__seed\d$",
+        "SAC (ours, SB3's clamped log-std scale: the default), 1e5 runs": (
             r"^HalfCheetah-v5__sac__l2__fpb50__clampedlogstd__1e5__seed\d$"
         ),
         "SB3 SAC, 1e5 runs": r"^HalfCheetah-v5__sb3_sac__default__1e5__seed\d$",
@@ -126,7 +127,7 @@ def _figure(task: str, groups: dict[str, list[Run]], path: Path) -> list[str]:
     Each SAC's 2e5 runs once as many of them have finished as it has 1e5 runs, else its 1e5 runs.
     """
     shown: dict[str, list[Run]] = {}
-    for name in ("SAC (ours)", "SB3 SAC"):
+    for name in (SAC_SOFTPLUS, "SB3 SAC"):
         longer, shorter = groups.get(f"{name}, 2e5 runs", []), groups.get(f"{name}, 1e5 runs", [])
         whole = sum(r.summary is not None for r in longer)  # partial copies do not count
         runs = longer if longer and whole >= len(shorter) else shorter
